@@ -1,0 +1,285 @@
+"""The arm's nominal rigid-body model on MuJoCo (Sec. 2, Eq. 1) and the payload terms the paper adds to it:
+tau_mm = J^T [F_m; r_w x F_m] (Eq. 3 and 5) with its regressor in phi = (m, m r), and the 10-parameter
+rigid-body payload regressor. Every function takes one state q (n,) or a window q (T, n)."""
+from __future__ import annotations
+
+import os
+
+import mujoco
+import numpy as np
+
+PANDA_XML = os.path.join(os.path.dirname(os.path.abspath(__file__)), "panda.xml")
+
+
+def as_states(name, x, n, allow_window=True):
+    """Checked float array of shape (n,) or (T, n); returns (array (T, n), batched)."""
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a numeric array of shape ({n},) or (T, {n}), "
+                         f"found {type(x).__name__}") from None
+    if a.ndim == 1 and a.shape[0] == n:
+        batched = False
+    elif allow_window and a.ndim == 2 and a.shape[1] == n and a.shape[0] > 0:
+        batched = True
+    else:
+        want = f"({n},) or (T, {n})" if allow_window else f"({n},)"
+        raise ValueError(f"{name}: expected shape {want}, found {a.shape}")
+    if not np.all(np.isfinite(a)):
+        idx = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+        raise ValueError(f"{name}: expected finite values, found {a[idx]} at index {idx}")
+    return np.atleast_2d(a), batched
+
+
+def skew(v):
+    """[v]x for v (..., 3) -> (..., 3, 3), so skew(v) @ w = v x w."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def inertia_matrix(I6):
+    """(Ixx, Ixy, Iyy, Ixz, Iyz, Izz) (pinocchio order) -> symmetric (3, 3)."""
+    xx, xy, yy, xz, yz, zz = I6
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+
+
+class Robot:
+    """Nominal dynamics M(q) ddq + C(q, dq) dq + G(q) = tau of a serial arm of hinge joints (Eq. 1).
+
+    model: the MjModel (fixed); ee: name of the end-effector site. Single-state calls run MuJoCo's own
+    functions on a private MjData; window calls of the kinematic terms (ee_pose, jacobian, payload_*) use a
+    vectorised forward-kinematics pass over the chain, checked against MuJoCo in the tests.
+    """
+
+    def __init__(self, model: mujoco.MjModel, ee: str = "ee"):
+        site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, ee)
+        if site < 0:
+            names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(model.nsite)]
+            raise ValueError(f"ee: no site named {ee!r} in the model; expected one of {names}")
+        if model.nq != model.nv or np.any(model.jnt_type != mujoco.mjtJoint.mjJNT_HINGE):
+            raise ValueError("model: expected a serial arm of hinge joints only, found joint types "
+                             f"{list(model.jnt_type)} (nq={model.nq}, nv={model.nv})")
+        self.model, self.ee, self.site = model, ee, site
+        self.n = model.nv
+        self.g = model.opt.gravity.copy()              # (3,) world gravity, (0, 0, -9.81) by default
+        self.data = mujoco.MjData(model)
+        self._M = np.zeros((self.n, self.n))
+        self._chain = self._serial_chain()
+
+    @classmethod
+    def panda(cls) -> "Robot":
+        """The project's Panda (panda.xml beside this file), end-effector site "ee"."""
+        return cls.from_xml(PANDA_XML, ee="ee")
+
+    @classmethod
+    def from_xml(cls, path, ee: str = "ee") -> "Robot":
+        if not os.path.isfile(path):
+            raise ValueError(f"path: expected an MJCF file, found no file at {path!r}")
+        try:
+            model = mujoco.MjModel.from_xml_path(str(path))
+        except Exception as err:                        # MuJoCo reports parse errors as ValueError/Exception
+            raise ValueError(f"path: could not load MJCF {path!r}: {err}") from None
+        return cls(model, ee)
+
+    # --- single-state MuJoCo calls -------------------------------------------------------------
+    def _kin(self, q, dq=None):
+        m, d = self.model, self.data
+        d.qpos[:] = q
+        d.qvel[:] = 0.0 if dq is None else dq
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+
+    def _jac(self):
+        J = np.empty((6, self.n))
+        mujoco.mj_jacSite(self.model, self.data, J[:3], J[3:], self.site)
+        return J
+
+    def _bias(self):
+        mujoco.mj_comVel(self.model, self.data)
+        b = np.empty(self.n)
+        mujoco.mj_rne(self.model, self.data, 0, b)
+        return b
+
+    def _mass(self):
+        mujoco.mj_crb(self.model, self.data)
+        mujoco.mj_fullM(self.model, self.data, self._M)
+        return self._M.copy()
+
+    def _each(self, fn, *arrays):
+        """Apply fn to each row of the checked (T, n) arrays; returns stacked results or the single one."""
+        (first, batched), rest = arrays[0], arrays[1:]
+        if not batched and not any(b for _, b in rest):
+            return fn(*(a[0] for a, _ in arrays))
+        T = first.shape[0]
+        for a, _ in rest:
+            if a.shape[0] != T:
+                raise ValueError(f"expected arrays with the same number of rows, found {T} and {a.shape[0]}")
+        out = np.stack([fn(*(a[t] for a, _ in arrays)) for t in range(T)])
+        return out if batched else out[0]
+
+    def mass_matrix(self, q):
+        """M(q) (n, n), or (T, n, n) for a window (includes any armature in the MJCF)."""
+        return self._each(lambda qi: (self._kin(qi), self._mass())[1], as_states("q", q, self.n))
+
+    def bias(self, q, dq):
+        """C(q, dq) dq + G(q) (n,) / (T, n)."""
+        return self._each(lambda qi, dqi: (self._kin(qi, dqi), self._bias())[1],
+                          as_states("q", q, self.n), as_states("dq", dq, self.n))
+
+    def gravity(self, q):
+        """G(q) (n,) / (T, n): the joint torque that holds the arm still."""
+        return self._each(lambda qi: (self._kin(qi), self._bias())[1], as_states("q", q, self.n))
+
+    def inverse_dynamics(self, q, dq, ddq):
+        """tau = M(q) ddq + C(q, dq) dq + G(q) (n,) / (T, n)."""
+        arm = self.model.dof_armature
+
+        def one(qi, dqi, ddqi):
+            self._kin(qi, dqi)
+            mujoco.mj_comVel(self.model, self.data)
+            self.data.qacc[:] = ddqi
+            tau = np.empty(self.n)
+            mujoco.mj_rne(self.model, self.data, 1, tau)
+            return tau + arm * ddqi                      # mj_rne leaves armature out; mj_crb puts it in M
+        return self._each(one, as_states("q", q, self.n), as_states("dq", dq, self.n),
+                          as_states("ddq", ddq, self.n))
+
+    def terms(self, q, dq):
+        """(J (6, n), M (n, n), C dq + G (n,)) for one state in one pass: what a 1 kHz control step needs."""
+        q, _ = as_states("q", q, self.n, allow_window=False)
+        dq, _ = as_states("dq", dq, self.n, allow_window=False)
+        self._kin(q[0], dq[0])
+        return self._jac(), self._mass(), self._bias()
+
+    # --- kinematics ----------------------------------------------------------------------------
+    def ee_pose(self, q):
+        """End-effector origin p (3,) and orientation R (3, 3) (columns: ee axes in world); (T, 3), (T, 3, 3)."""
+        q, batched = as_states("q", q, self.n)
+        if batched:
+            p, R, _, _ = self._fk(q)
+            return p, R
+        self._kin(q[0])
+        return self.data.site_xpos[self.site].copy(), self.data.site_xmat[self.site].reshape(3, 3).copy()
+
+    def jacobian(self, q):
+        """J (6, n): world-frame [v; w] = J dq at the end-effector origin, linear rows first; (T, 6, n)."""
+        q, batched = as_states("q", q, self.n)
+        if batched:
+            return self._fk_jacobian(q)[0]
+        self._kin(q[0])
+        return self._jac()
+
+    def _serial_chain(self):
+        """Bodies from the root to the ee site's body, each with its joint (or -1 for a welded body)."""
+        m, chain, b = self.model, [], int(self.model.site_bodyid[self.site])
+        while b > 0:
+            jnts = np.flatnonzero(m.jnt_bodyid == b)
+            if len(jnts) > 1:
+                return None                              # not a plain serial chain: windows fall back to loops
+            chain.append((b, int(jnts[0]) if len(jnts) else -1))
+            b = int(m.body_parentid[b])
+        return chain[::-1]
+
+    def _fk(self, q):
+        """Vectorised forward kinematics for q (T, n): site p (T,3), R (T,3,3), joint axes and anchors (T,n,3)."""
+        m, T = self.model, q.shape[0]
+        if self._chain is None:
+            out = [self.ee_pose(qi) for qi in q]
+            return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), None, None
+        p, R = np.zeros((T, 3)), np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+        axes, anchors = np.zeros((T, self.n, 3)), np.zeros((T, self.n, 3))
+        for body, jnt in self._chain:
+            Rb = np.empty(9)
+            mujoco.mju_quat2Mat(Rb, m.body_quat[body])
+            p = p + R @ m.body_pos[body]
+            R = R @ Rb.reshape(3, 3)
+            if jnt >= 0:
+                dof, a_loc, c_loc = m.jnt_dofadr[jnt], m.jnt_axis[jnt], m.jnt_pos[jnt]
+                anchor = p + R @ c_loc                                    # (T, 3)
+                R = R @ _axis_rotation(a_loc, q[:, m.jnt_qposadr[jnt]])    # R_body = R_pre Rot(a, q)
+                p = anchor - R @ c_loc
+                axes[:, dof], anchors[:, dof] = R @ a_loc, anchor
+        p = p + R @ m.site_pos[self.site]
+        Rs = np.empty(9)
+        mujoco.mju_quat2Mat(Rs, m.site_quat[self.site])
+        return p, R @ Rs.reshape(3, 3), axes, anchors
+
+    def _fk_jacobian(self, q):
+        p, R, axes, anchors = self._fk(q)
+        if axes is None:
+            return np.stack([self.jacobian(qi) for qi in q]), R
+        J = np.empty((q.shape[0], 6, self.n))
+        J[:, :3] = np.cross(axes, p[:, None, :] - anchors).transpose(0, 2, 1)   # z_i x (p - o_i)
+        J[:, 3:] = axes.transpose(0, 2, 1)
+        return J, R
+
+    # --- payload terms (paper Eq. 3/5) ---------------------------------------------------------
+    def payload_regressor(self, q):
+        """Y (n, 4) / (T, n, 4) with tau_mm = Y phi, phi = (m, m rx, m ry, m rz), r in the ee frame.
+
+        tau_mm = Jv^T F + Jw^T ((R r) x F), F = m g  =>  Y = [Jv^T g, -Jw^T [g]x R]  (paper sign:
+        the torque the payload's weight applies to the arm, like tau_ext).
+        """
+        q, batched = as_states("q", q, self.n)
+        if batched:
+            J, R = self._fk_jacobian(q)
+        else:
+            self._kin(q[0])
+            J, R = self._jac()[None], self.data.site_xmat[self.site].reshape(1, 3, 3)
+        Y = np.empty((q.shape[0], self.n, 4))
+        Y[:, :, 0] = J[:, :3].transpose(0, 2, 1) @ self.g
+        Y[:, :, 1:] = -J[:, 3:].transpose(0, 2, 1) @ (skew(self.g) @ R)
+        return Y if batched else Y[0]
+
+    def payload_torque(self, q, theta):
+        """tau_mm (n,) / (T, n) for theta = (m, rx, ry, rz) (kg, m in the ee frame)."""
+        theta, _ = as_states("theta", theta, 4, allow_window=False)
+        m, r = theta[0, 0], theta[0, 1:]
+        return self.payload_regressor(q) @ np.concatenate([[m], m * r])
+
+    def body_regressor(self, q, dq, ddq):
+        """Y (n, 10) / (T, n, 10): joint torque that a rigid payload applies to the arm under motion,
+        tau = Y pi, pi = (m, m cx, m cy, m cz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz), inertia about the ee origin,
+        all in the ee frame (pinocchio's order). Same sign as payload_torque: Y(q, 0, 0)[:, :4] == payload_regressor(q).
+
+        Newton-Euler in the ee frame, a = (acceleration of the origin) - g, w, al = angular velocity, acceleration:
+          f = m a + al x h + w x (w x h),   n = I al + w x (I w) + h x a,   h = m c;  tau = -(Jv^T R f + Jw^T R n).
+        """
+        args = [as_states(k, v, self.n) for k, v in (("q", q), ("dq", dq), ("ddq", ddq))]
+        return self._each(self._body_regressor_one, *args)
+
+    def _body_regressor_one(self, q, dq, ddq):
+        m, d = self.model, self.data
+        self._kin(q, dq)
+        mujoco.mj_comVel(m, d)
+        d.qacc[:] = ddq
+        mujoco.mj_rnePostConstraint(m, d)             # body accelerations (with -g at the world body)
+        vel, acc = np.empty(6), np.empty(6)
+        mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_SITE, self.site, vel, 1)      # [w; v] ee frame
+        mujoco.mj_objectAcceleration(m, d, mujoco.mjtObj.mjOBJ_SITE, self.site, acc, 1)  # [al; a - g]
+        w, al, a = vel[:3], acc[:3], acc[3:]
+        A = np.zeros((6, 10))                         # [f; n] = A pi
+        A[:3, 0] = a
+        A[:3, 1:4] = skew(al) + skew(w) @ skew(w)
+        A[3:, 1:4] = -skew(a)
+        A[3:, 4:] = _inertia_times(al) + skew(w) @ _inertia_times(w)
+        J, R = self._jac(), d.site_xmat[self.site].reshape(3, 3)
+        return -(J[:3].T @ R @ A[:3] + J[3:].T @ R @ A[3:])
+
+
+def _inertia_times(v):
+    """L(v) (3, 6) with I v = L(v) (Ixx, Ixy, Iyy, Ixz, Iyz, Izz)."""
+    x, y, z = v
+    return np.array([[x, y, 0, z, 0, 0], [0, x, y, 0, z, 0], [0, 0, 0, x, y, z]], dtype=float)
+
+
+def _axis_rotation(a, angle):
+    """Rodrigues: rotation matrices (T, 3, 3) about the unit axis a (3,) by angle (T,)."""
+    a = np.asarray(a, dtype=float) / np.linalg.norm(a)
+    K = skew(a)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
