@@ -13,6 +13,8 @@ PANDA_XML = os.path.join(os.path.dirname(os.path.abspath(__file__)), "panda.xml"
 
 def as_states(name, x, n, allow_window=True):
     """Checked float array of shape (n,) or (T, n); returns (array (T, n), batched)."""
+    if type(x) is np.ndarray and x.shape == (n,) and x.dtype == np.float64 and np.isfinite(x.sum()):
+        return x[None], False                          # fast path for the 1 kHz loop
     try:
         a = np.asarray(x, dtype=float)
     except (TypeError, ValueError):
@@ -66,6 +68,7 @@ class Robot:
         self.model, self.ee, self.site = model, ee, site
         self.n = model.nv
         self.g = model.opt.gravity.copy()              # (3,) world gravity, (0, 0, -9.81) by default
+        self._g_skew = skew(self.g)
         self.data = mujoco.MjData(model)
         self._M = np.zeros((self.n, self.n))
         self._chain = self._serial_chain()
@@ -231,15 +234,16 @@ class Robot:
             self._kin(q[0])
             J, R = self._jac()[None], self.data.site_xmat[self.site].reshape(1, 3, 3)
         Y = np.empty((q.shape[0], self.n, 4))
-        Y[:, :, 0] = J[:, :3].transpose(0, 2, 1) @ self.g
-        Y[:, :, 1:] = -J[:, 3:].transpose(0, 2, 1) @ (skew(self.g) @ R)
+        Y[:, :, 0] = self.g @ J[:, :3]
+        Y[:, :, 1:] = -J[:, 3:].transpose(0, 2, 1) @ (self._g_skew @ R)
         return Y if batched else Y[0]
 
     def payload_torque(self, q, theta):
         """tau_mm (n,) / (T, n) for theta = (m, rx, ry, rz) (kg, m in the ee frame)."""
         theta, _ = as_states("theta", theta, 4, allow_window=False)
-        m, r = theta[0, 0], theta[0, 1:]
-        return self.payload_regressor(q) @ np.concatenate([[m], m * r])
+        phi = theta[0] * theta[0, 0]
+        phi[0] = theta[0, 0]                               # (m, m rx, m ry, m rz)
+        return self.payload_regressor(q) @ phi
 
     def body_regressor(self, q, dq, ddq):
         """Y (n, 10) / (T, n, 10): joint torque that a rigid payload applies to the arm under motion,
