@@ -183,8 +183,13 @@ class Robot:
             jnts = np.flatnonzero(m.jnt_bodyid == b)
             if len(jnts) > 1:
                 return None                              # not a plain serial chain: windows fall back to loops
-            chain.append((b, int(jnts[0]) if len(jnts) else -1))
+            Rb = np.empty(9)
+            mujoco.mju_quat2Mat(Rb, m.body_quat[b])
+            chain.append((m.body_pos[b].copy(), Rb.reshape(3, 3), int(jnts[0]) if len(jnts) else -1))
             b = int(m.body_parentid[b])
+        Rs = np.empty(9)
+        mujoco.mju_quat2Mat(Rs, m.site_quat[self.site])
+        self._site_frame = (m.site_pos[self.site].copy(), Rs.reshape(3, 3))
         return chain[::-1]
 
     def _fk(self, q):
@@ -193,23 +198,19 @@ class Robot:
         if self._chain is None:
             out = [self.ee_pose(qi) for qi in q]
             return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), None, None
-        p, R = np.zeros((T, 3)), np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+        p, R = np.zeros((T, 3)), np.broadcast_to(np.eye(3), (T, 3, 3))
         axes, anchors = np.zeros((T, self.n, 3)), np.zeros((T, self.n, 3))
-        for body, jnt in self._chain:
-            Rb = np.empty(9)
-            mujoco.mju_quat2Mat(Rb, m.body_quat[body])
-            p = p + R @ m.body_pos[body]
-            R = R @ Rb.reshape(3, 3)
+        for pos, Rb, jnt in self._chain:               # body frame from its parent: pos, Rb (fixed)
+            p = p + R @ pos
+            R = R @ Rb
             if jnt >= 0:
                 dof, a_loc, c_loc = m.jnt_dofadr[jnt], m.jnt_axis[jnt], m.jnt_pos[jnt]
-                anchor = p + R @ c_loc                                    # (T, 3)
-                R = R @ _axis_rotation(a_loc, q[:, m.jnt_qposadr[jnt]])    # R_body = R_pre Rot(a, q)
-                p = anchor - R @ c_loc
+                anchor = p + R @ c_loc if c_loc.any() else p                  # (T, 3)
+                R = R @ _axis_rotation(a_loc, q[:, m.jnt_qposadr[jnt]])      # R_body = R_pre Rot(a, q)
+                p = anchor - R @ c_loc if c_loc.any() else anchor
                 axes[:, dof], anchors[:, dof] = R @ a_loc, anchor
-        p = p + R @ m.site_pos[self.site]
-        Rs = np.empty(9)
-        mujoco.mju_quat2Mat(Rs, m.site_quat[self.site])
-        return p, R @ Rs.reshape(3, 3), axes, anchors
+        pos, Rs = self._site_frame
+        return p + R @ pos, R @ Rs, axes, anchors
 
     def _fk_jacobian(self, q):
         p, R, axes, anchors = self._fk(q)

@@ -228,7 +228,8 @@ class Plant:
         tf = np.asarray(c.viscous) * dq + np.asarray(c.coulomb) * np.tanh(dq / c.coulomb_width)
         if c.friction_sigmoid is not None:
             p1, p2, p3 = (np.asarray(p) for p in c.friction_sigmoid)
-            tf = tf + p1 / (1 + np.exp(-p2 * (dq + p3))) - p1 / (1 + np.exp(-p2 * p3))
+            # 1 / (1 + exp(-x)) = (1 + tanh(x / 2)) / 2, without overflow
+            tf = tf + 0.5 * p1 * (np.tanh(0.5 * p2 * (dq + p3)) - np.tanh(0.5 * p2 * p3))
         return tf
 
     def _push_forces(self):
