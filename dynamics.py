@@ -158,6 +158,15 @@ class Robot:
         self._kin(q[0], dq[0])
         return self._jac(), self._mass(), self._bias()
 
+    def control_terms(self, q, dq):
+        """Everything a task-space control step needs for one state, in one kinematics pass:
+        (J (6, n), M (n, n), b = C dq + G (n,), G (n,), p (3,), R (3, 3))."""
+        J, M, b = self.terms(q, dq)
+        d = self.data
+        p, R = d.site_xpos[self.site].copy(), d.site_xmat[self.site].reshape(3, 3).copy()
+        d.qvel[:] = 0.0
+        return J, M, b, self._bias(), p, R
+
     # --- kinematics ----------------------------------------------------------------------------
     def ee_pose(self, q):
         """End-effector origin p (3,) and orientation R (3, 3) (columns: ee axes in world); (T, 3), (T, 3, 3)."""

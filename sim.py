@@ -209,12 +209,12 @@ class Plant:
 
     def _advance(self, tau, integrate):
         m, d = self.model, self.data
+        d.ctrl[:] = tau
         if integrate:
-            mujoco.mj_step2(m, d)                      # acceleration at t under the last command, integrate
+            mujoco.mj_step2(m, d)                      # acceleration at t under tau, then integrate to t + dt
         while self._events and self._events[0][0] <= d.time + 1e-9:
             m_, r_, inertia = self._events.pop(0)[1]
             self.set_payload(m_, r_, inertia)
-        d.ctrl[:] = tau
         mujoco.mj_step1(m, d)                          # position and velocity stages at the new time
         d.qfrc_applied[:] = -self._friction(d.qvel) + self._push_forces()
         mujoco.mj_forwardSkip(m, d, mujoco.mjtStage.mjSTAGE_VEL, 1)   # ddq at the new time under tau
@@ -368,8 +368,17 @@ def demo_payload(args):
     return err
 
 
+def _demo(module, name):
+    """A demo function from another module, imported when it runs (so sim.py imports nothing heavy)."""
+    return lambda args: getattr(__import__(module), name)(args)
+
+
 DEMOS = {
-    "payload": ("the foundation demo: measured tau_ext vs payload_torque", lambda a: demo_payload(a)),
+    "payload": ("measured tau_ext beside payload_torque for the true payload", demo_payload),
+    "hold": ("CPIC static hold, payload at 1.75 s, without and with exact compensation", _demo("demos", "hold")),
+    "limit-cycle": ("CPIC tracking a y-z limit cycle with a payload", _demo("demos", "limit_cycle")),
+    "timing": ("median microseconds of every hot path", _demo("bench", "timing")),
+    "bench": ("the paper's Tables 1, 4, 5 in simulation (--json for one JSON object)", _demo("bench", "bench")),
 }
 
 

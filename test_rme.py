@@ -46,10 +46,18 @@ def test_model_terms_equal_mujoco_on_random_states():
         np.testing.assert_allclose(ROBOT.bias(q, dq), b, atol=1e-9)
         np.testing.assert_allclose(ROBOT.gravity(q), G, atol=1e-9)
         np.testing.assert_allclose(ROBOT.inverse_dynamics(q, dq, ddq), tau, atol=1e-9)
-        Jt, Mt, bt = ROBOT.terms(q, dq)
+        Jt, Mt, bt, Gt, pt, Rt = ROBOT.control_terms(q, dq)
         np.testing.assert_allclose(Jt, J, atol=1e-9)
         np.testing.assert_allclose(Mt, M, atol=1e-9)
         np.testing.assert_allclose(bt, b, atol=1e-9)
+        np.testing.assert_allclose(Gt, G, atol=1e-9)
+        d = mujoco.MjData(ROBOT.model)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(ROBOT.model, d)
+        np.testing.assert_allclose(pt, d.site_xpos[ROBOT.site], atol=1e-12)
+        np.testing.assert_allclose(Rt, d.site_xmat[ROBOT.site].reshape(3, 3), atol=1e-12)
+        for got, want in zip(ROBOT.terms(q, dq), (J, M, b)):
+            np.testing.assert_allclose(got, want, atol=1e-9)
 
 
 def test_jacobian_equals_central_differences_of_ee_pose():
@@ -209,13 +217,21 @@ def test_scheduled_payload_appears_in_tau_ext_at_its_time_and_leaves_on_removal(
     log = record(plant, JointHold(plant.robot, Q_READY), 0.4, first)
     on = np.flatnonzero(log["theta"][:, 0] > 0)
     assert abs(log["t"][on[0]] - 0.1) < 1.5e-3 and abs(log["t"][on[-1]] - 0.3) < 1.5e-3
-    # exact observer, ideal plant: tau_ext is the payload's rigid-body torque under the arm's motion;
-    # the integrator gives ddq_k = (dq_k+1 - dq_k) / dt exactly (semi-implicit Euler, no damping)
+    # exact observer, ideal plant: tau_ext is the payload's rigid-body torque under the arm's motion.
+    # Sample k reports ddq under the torque held since the last command, tau_J[k]; the step to k+1 integrates
+    # (semi-implicit Euler, no damping) the acceleration under the next command tau_J[k+1], so
+    # ddq_k = (dq_k+1 - dq_k) / dt - M_plant^-1 (tau_J[k+1] - tau_J[k]).
     m, c = theta[0], theta[1:]
     Io = m * (c @ c * np.eye(3) - np.outer(c, c))                          # point mass about the ee origin
     pi = np.r_[m, m * c, Io[0, 0], Io[0, 1], Io[1, 1], Io[0, 2], Io[1, 2], Io[2, 2]]
+    d = mujoco.MjData(plant.model)
+    plant.set_payload(theta[0], theta[1:])
     for k in on[5:-1:40]:
-        ddq = (log["dq"][k + 1] - log["dq"][k]) / plant.dt
+        d.qpos[:] = log["q"][k]
+        mujoco.mj_forward(plant.model, d)
+        M_plant = np.zeros((N, N))
+        mujoco.mj_fullM(plant.model, d, M_plant)
+        ddq = (log["dq"][k + 1] - log["dq"][k]) / plant.dt - np.linalg.solve(M_plant, log["tau_J"][k + 1] - log["tau_J"][k])
         np.testing.assert_allclose(log["tau_ext"][k], ROBOT.body_regressor(log["q"][k], log["dq"][k], ddq) @ pi,
                                    atol=1e-7)
     np.testing.assert_allclose(log["tau_ext"][on[-1] + 2:], 0.0, atol=1e-9)   # removed: nothing left

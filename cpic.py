@@ -1,0 +1,514 @@
+"""Constrained passive interaction control (CPIC, Sec. 3, Eqs. 6-7; Appendix B, D): DS motion policies, the passive
+impedance law F_c = G_x - D(x)(xdot - f(x)), and the exponential-CBF torque QP solved by a hand-written dual
+active-set (Goldfarb-Idnani) KKT solver, plus the RME compensation hook. `python cpic.py` prints the benchmark."""
+from __future__ import annotations
+
+import math
+import time
+import timeit
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+# --- the QP solver: min 1/2 x^T H x + g^T x  s.t.  A x >= b --------------------------------------------------
+@dataclass(frozen=True)
+class QPInfo:
+    """status: "optimal" | "infeasible" | "max_iterations" | "degenerate" (numerical breakdown);
+    iterations: active-set changes (adds + drops); active: indices of the active constraints (k,);
+    multipliers: lambda (m,) >= 0, zero off the active set; residual: max KKT violation (abs)."""
+    status: str
+    iterations: int
+    active: np.ndarray
+    multipliers: np.ndarray
+    residual: float
+
+
+def solve_qp(H, g, A, b, active=None, max_iterations=None):
+    """Strictly convex QP min 1/2 x^T H x + g^T x s.t. A x >= b; H (n, n) SPD, g (n,), A (m, n), b (m,).
+
+    active: indices believed active (warm start, e.g. the previous info.active); inconsistent ones (linearly
+    dependent, negative multiplier) are dropped. Returns (x (n,), QPInfo); never raises after validation.
+    """
+    H, g, A, b = (np.asarray(v, dtype=float) for v in (H, g, A, b))
+    n = g.shape[0] if g.ndim == 1 and g.shape[0] > 0 else 0
+    m = b.shape[0] if b.ndim == 1 else -1
+    for name, v, shape, what in (("g", g, (n,), "(n,), n >= 1"), ("H", H, (n, n), "(n, n)"),
+                                 ("b", b, (m,), "(m,)"), ("A", A, (m, n), "(m, n) = (len(b), len(g))")):
+        if v.shape != shape or n == 0:
+            raise ValueError(f"{name}: expected shape {what}, found {v.shape}")
+        if not np.isfinite(v).all():
+            raise ValueError(f"{name}: expected finite values, found {v[~np.isfinite(v)][0]}")
+    if np.abs(H - H.T).max() > 1e-10 * max(1.0, H.diagonal().max()):       # |H_ij| <= max H_ii if SPD
+        raise ValueError(f"H: expected a symmetric matrix, found max |H - H^T| = {np.abs(H - H.T).max():.3g}")
+    try:
+        L = np.linalg.cholesky(H)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"H: expected positive definite, found eigenvalues {np.linalg.eigvalsh(H)}") from None
+    W = np.zeros(0, dtype=int) if active is None else np.asarray(active).reshape(-1)
+    if W.size and (W.dtype.kind not in "iu" or W.min() < 0 or W.max() >= b.shape[0]):
+        raise ValueError(f"active: expected integer indices in [0, {b.shape[0]}), found {W}")
+    if max_iterations is None:
+        max_iterations = 5 * (n + m) + 10
+    x, status, it, W, mult = dual_active_set(np.linalg.inv(L), g, A, b, W, int(max_iterations))
+    with np.errstate(over="ignore", invalid="ignore"):  # absolute KKT residual; inf on overflow
+        s = A @ x - b
+        if W:
+            residual = max(np.abs(H @ x + g - mult @ A).max(), -s.min(), np.abs(mult * s).max())
+        else:
+            residual = max(np.abs(H @ x + g).max(), -s.min(initial=0.0))
+    return x, QPInfo(status, it, np.array(W, dtype=int), mult, float(residual))
+
+
+def dual_active_set(B, g, A, b, active, max_iterations, tol=1e-11):
+    """Goldfarb and Idnani's dual method (Math. Prog. 27, 1983); unchecked inputs, for the loop. B (n, n) is any
+    factor with B^T B = H^-1 (B = L^-1 for H = L L^T), so that H itself is never needed.
+
+    In x = B^T y the QP is min 1/2 |y + c|^2 s.t. N y >= d (c = B g, rows of N = A B^T scaled to unit
+    length), so every KKT solve is a k x k normal-equation solve with k <= n active constraints. Starting from
+    any dual-feasible active set (the warm start after dropping negative multipliers), each iteration adds
+    the most violated constraint, taking partial steps that drop active ones whose multiplier reaches zero.
+    Returns x (n,), status, iterations (adds + drops), active indices (list), multipliers (m,).
+    """
+    n, m = B.shape[0], b.shape[0]
+    c = B @ g                                         # (n,)
+    if not len(active):                               # fast path: the unconstrained minimiser -H^-1 g is feasible
+        x = -(c @ B)
+        if not m or (A @ x - b).min() >= -tol * (1.0 + np.abs(b).max() + np.abs(A).max() * np.abs(x).max()):
+            return x, "optimal", 0, [], np.zeros(m)
+    N = A @ B.T                                       # (m, n)
+    norms = np.sqrt(np.einsum("ij,ij->i", N, N))
+    usable = norms > 1e-12 * (1.0 + norms.max())
+    scale = 1.0 / np.where(usable, norms, 1.0)
+    N, d = N * scale[:, None], b * scale              # unit rows; multipliers map back by * scale
+    W, it, status = [], 0, "optimal"
+    if not usable.all():                              # a zero row reads 0 >= b_i
+        d = np.where(usable, d, -1.0)
+        if (b[~usable] > 0.0).any():
+            return -(c @ B), "infeasible", 0, [], np.zeros(m)
+    tol = tol * (1.0 + np.abs(c).max() + np.abs(d).max())
+    if len(active):
+        W, it = _independent(N, [i for i in dict.fromkeys(int(i) for i in active) if usable[i]], n)
+    y, lam = -c, np.zeros(0)
+    try:
+        W, lam, y, drops = _dual_feasible_start(N, d, c, W)
+        it += drops
+        while True:
+            s = N @ y - d
+            s[W] = np.inf
+            p = int(np.argmin(s))
+            if s[p] >= -tol:
+                break
+            status, W, lam, y, steps = _add_constraint(N, d, y, W, lam, p, max_iterations - it)
+            it += steps
+            if status != "optimal":
+                break
+        if status == "optimal" and it and W:           # polish: the exact minimiser on the final active set
+            lam_p, y_p = _eqp(N, d, c, W)
+            if lam_p.min() >= -tol and (N @ y_p - d).min() >= -tol:
+                lam, y = lam_p, y_p
+    except np.linalg.LinAlgError:
+        status, y, W, lam = "degenerate", -c, [], np.zeros(0)
+    if not (np.isfinite(y).all() and np.isfinite(lam).all()):
+        status, y, W, lam = "degenerate", -c, [], np.zeros(0)
+    mult = np.zeros(m)
+    if W:
+        mult[W] = np.maximum(lam, 0.0) * scale[W]
+    return B.T @ y, status, it, W, mult
+
+
+def _independent(N, W, n):
+    """Greedy Gram-Schmidt: keep the indices whose rows are independent of the ones kept before (k <= n)."""
+    if len(W) <= 1:
+        return W, 0                                   # rows are unit length
+    basis, keep = [], []
+    for i in W:
+        v = N[i] - (np.array(basis).T @ (np.array(basis) @ N[i]) if basis else 0.0)
+        nv = np.sqrt(v @ v)
+        if nv > 1e-8 and len(keep) < n:
+            basis.append(v / nv)
+            keep.append(i)
+    return keep, len(W) - len(keep)
+
+
+def _eqp(N, d, c, W):
+    """Minimiser of 1/2 |y + c|^2 on N_W y = d_W: y = -c + N_W^T lam, (N_W N_W^T) lam = d_W + N_W c."""
+    if len(W) == 1:                                   # unit row: N_W N_W^T = 1
+        nw = N[W[0]]
+        lam = d[W[0]] + nw @ c
+        return np.array([lam]), lam * nw - c
+    NW = N[W]
+    lam = np.linalg.solve(NW @ NW.T, d[W] + NW @ c)
+    return lam, NW.T @ lam - c
+
+
+def _dual_feasible_start(N, d, c, W):
+    """Drop the most negative multiplier until the warm-start set is dual feasible (lambda >= 0)."""
+    drops = 0
+    while W:
+        lam, y = _eqp(N, d, c, W)
+        j = int(np.argmin(lam))
+        if lam[j] >= 0.0:
+            return W, lam, y, drops
+        W, drops = W[:j] + W[j + 1:], drops + 1
+    return [], np.zeros(0), -c, drops
+
+
+def _add_constraint(N, d, y, W, lam, p, budget):
+    """Add violated constraint p (Goldfarb-Idnani step 2): primal step along z, dual step -r, partial steps
+    drop the blocking active constraint. Returns (status, W, lam, y, iterations)."""
+    n_p, lam_p, steps = N[p], 0.0, 0
+    while steps < budget:
+        if W:
+            NW = N[W]                                 # (k, n)
+            r = np.linalg.solve(NW @ NW.T, NW @ n_p)   # n_p = N_W^T r + z, z _|_ rows of N_W
+            z = n_p - NW.T @ r
+        else:
+            r, z = np.zeros(0), n_p
+        zz = z @ z
+        t2 = (d[p] - n_p @ y) / zz if zz > 1e-14 else np.inf      # full step: constraint p becomes active
+        pos = r > 1e-12
+        t1, j = np.inf, -1
+        if pos.any():
+            ratios = np.where(pos, lam / np.where(pos, r, 1.0), np.inf)
+            j = int(np.argmin(ratios))
+            t1 = ratios[j]                            # partial step: multiplier j reaches zero first
+        if t1 == np.inf and t2 == np.inf:
+            return "infeasible", W, lam, y, steps
+        t = min(t1, t2)
+        if zz > 1e-14:
+            y = y + t * z
+        lam, lam_p, steps = lam - t * r, lam_p + t, steps + 1
+        if t2 <= t1:
+            return "optimal", W + [p], np.append(lam, lam_p), y, steps
+        W, lam = W[:j] + W[j + 1:], np.delete(lam, j)
+    return "max_iterations", W, lam, y, steps
+
+
+# --- motion policies f(x) with their Lyapunov functions V(x) (Sec. 3, Eq. 6) ---------------------------------
+def rotation_log(R):
+    """log map of R (3, 3) -> rotation vector (3,) = angle * axis, angle in [0, pi]."""
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])      # 2 sin(angle) axis
+    angle = math.acos(min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))))
+    if angle < 1e-6:
+        return 0.5 * w                                # first order: log R = vee(R - R^T) / 2
+    if angle < math.pi - 1e-4:
+        return (angle / (2.0 * math.sin(angle))) * w
+    B = 0.5 * (R + np.eye(3))                         # near pi: B = axis axis^T (+ O(pi - angle))
+    k = int(np.argmax(np.diag(B)))
+    axis = B[:, k] / math.sqrt(B[k, k])
+    return angle * (axis if axis @ w >= 0.0 else -axis)
+
+
+def _orientation_terms(R, R_star, gain):
+    """f_w = -a log(R R*^T) (world angular velocity, (3,)) and V_rot = a/2 |log(R R*^T)|^2: f_w = -grad V_rot."""
+    e = rotation_log(R @ R_star.T)
+    return -gain * e, 0.5 * gain * (e @ e)
+
+
+@dataclass(frozen=True)
+class Attractor:
+    """Linear DS to the pose (p_star (3,), R_star (3, 3)): f = (-a_p (p - p*), -a_r log(R R*^T)) (6,),
+    V = a_p/2 |p - p*|^2 + a_r/2 |log(R R*^T)|^2, conservative (f = -grad V) as Appendix D assumes."""
+    p_star: np.ndarray
+    R_star: np.ndarray = field(default_factory=lambda: np.eye(3))
+    gain_pos: float = 3.0        # 1/s; our choice: stiffness lambda_1 a_p = 450 N/m with lambda_1 = 150
+    gain_rot: float = 8.0        # 1/s; our choice: stiffness 20 N m/rad with lambda_1 = 2.5
+
+    def __call__(self, p, R):
+        """-> f (6,), V = (V_pos, V_rot)."""
+        e = p - self.p_star
+        f_w, V_rot = _orientation_terms(R, self.R_star, self.gain_rot)
+        return np.concatenate([-self.gain_pos * e, f_w]), (0.5 * self.gain_pos * (e @ e), V_rot)
+
+
+@dataclass(frozen=True)
+class LimitCycle:
+    """Stable limit cycle in the world y-z plane around `center` (3,) (Sec. 5.3): in polar coordinates
+    (rho, phi) of (y, z): drho/dt = -a (rho - radius), dphi/dt = 2 pi / period, dx/dt = -a (x - x_c);
+    V_pos = a/2 ((rho - radius)^2 + (x - x_c)^2) decreases along f; orientation held at R_star."""
+    center: np.ndarray
+    R_star: np.ndarray = field(default_factory=lambda: np.eye(3))
+    radius: float = 0.1          # m; our choice (the paper gives no size)
+    period: float = 4.0          # s; our choice: 0.16 m/s along the cycle
+    gain_pos: float = 3.0        # 1/s, radial and out-of-plane convergence
+    gain_rot: float = 8.0        # 1/s
+
+    def __call__(self, p, R):
+        e = p - self.center
+        u = e[1:]                                     # (y, z) relative to the centre
+        rho = np.sqrt(u @ u)
+        radial = u / rho if rho > 1e-12 else np.zeros(2)
+        omega = 2.0 * np.pi / self.period
+        v_yz = -self.gain_pos * (rho - self.radius) * radial + omega * np.array([-u[1], u[0]])
+        f_w, V_rot = _orientation_terms(R, self.R_star, self.gain_rot)
+        V_pos = 0.5 * self.gain_pos * ((rho - self.radius) ** 2 + e[0] ** 2)
+        return np.concatenate([[-self.gain_pos * e[0]], v_yz, f_w]), (V_pos, V_rot)
+
+
+# --- passive impedance law (Eq. 6; Kronander and Billard 2016) ----------------------------------------------
+def damping_matrix(f, eigenvalues):
+    """D = Q Lambda Q^T (3, 3), Q = [e1 e2 e3] orthonormal with e1 = f / |f| (the world x axis when f = 0,
+    where any basis keeps D f = lambda_1 f); eigenvalues (3,) = (lambda_1, lambda_2, lambda_3)."""
+    x, y, z = (float(v) for v in f)
+    nf = np.sqrt(x * x + y * y + z * z)
+    x, y, z = (x / nf, y / nf, z / nf) if nf > 1e-12 else (1.0, 0.0, 0.0)
+    k = min(range(3), key=lambda i: abs((x, y, z)[i]))        # the world axis least aligned with e1
+    u = (0.0, -z, y) if k == 0 else ((z, 0.0, -x) if k == 1 else (-y, x, 0.0))   # e1 x axis_k
+    nu = np.sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2)
+    u = (u[0] / nu, u[1] / nu, u[2] / nu)
+    w = (y * u[2] - z * u[1], z * u[0] - x * u[2], x * u[1] - y * u[0])          # e1 x e2
+    Q = np.array([[x, u[0], w[0]], [y, u[1], w[1]], [z, u[2], w[2]]])
+    return (Q * eigenvalues) @ Q.T
+
+
+def impedance_wrench(G_x, xdot, f, damping_pos, damping_rot):
+    """F_c = G_x - D(x)(xdot - f(x)) (6,), D = blockdiag(D_pos(f_v), D_rot(f_w)); G_x, xdot, f (6,)."""
+    e = xdot - f
+    return G_x - np.concatenate([_damp(f[:3], damping_pos, e[:3]), _damp(f[3:], damping_rot, e[3:])])
+
+
+def _damp(f, eigenvalues, e):
+    """D(f) e (3,); with lambda_2 = lambda_3, Q Lambda Q^T = lambda_2 I + (lambda_1 - lambda_2) e1 e1^T exactly."""
+    l1, l2, l3 = eigenvalues
+    if l2 != l3:
+        return damping_matrix(f, eigenvalues) @ e
+    ff = float(f @ f)
+    if ff <= 1e-24:                                   # f = 0: e1 = world x axis, as in damping_matrix
+        return l2 * e + np.array([(l1 - l2) * e[0], 0.0, 0.0])
+    return l2 * e + ((l1 - l2) * float(f @ e) / ff) * f
+
+
+# --- the CPIC torque QP (Eq. 7, Appendix D) with the RME compensation hook (Eq. 4, Appendix B) -----------------
+@dataclass(frozen=True)
+class CPICConfig:
+    damping_pos: tuple = (150.0, 150.0, 150.0)  # N s/m, D eigenvalues (along f first); the lab's Franka passive-DS
+    #                                             value (franka_interactive_controllers: "150 for franka")
+    damping_rot: tuple = (2.5, 2.5, 2.5)        # N m s/rad; the lab uses 5 (same source) on a wrist with rotor
+    #   inertia; the nominal model has none (rotational task inertia down to 0.005 kg m^2), and with the 1 ms
+    #   command delay dt D / I > 1 makes the wrist chatter, so half of it (deviation, see README)
+    k1: float = 30.0                  # 1/s^2, E-CBF gain on h (lab range k1 = 30..1000, paper_notes.md)
+    k2: float = 50.0                  # 1/s, E-CBF gain on dh/dt (lab range k2 = 50..1000)
+    tau_max: tuple = (87.0,) * 4 + (12.0,) * 3  # N m, Panda torque limits (panda_facts.md)
+    q_min: tuple | None = None        # rad; None: the model's joint ranges (panda.xml = Franka documentation)
+    q_max: tuple | None = None
+    null_weight: float = 1.0          # w in + w |N (tau - tau_0)|^2 (our choice: H = J^+ J^+T alone is singular
+    #                                   for a 7-DoF arm; w does not change the unconstrained optimum)
+    null_damping: float = 1.0         # N m s/rad, k_n in tau_0 = G - k_n dq (our choice; dissipative)
+    fallback_damping: tuple = (20.0,) * 4 + (3.0,) * 3   # N m s/rad, safe torque G + comp - K dq (our choice)
+    max_iterations: int = 100         # active-set changes per QP
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """status: QP status or "fallback: <reason>"; f (6,), V = (V_pos, V_rot), F_c (6,), tau_qp (n,) before
+    compensation; active: active constraint indices (rows: CBF lower 0..n-1, upper n..2n-1, tau >= -max
+    2n..3n-1, tau <= max 3n..4n-1)."""
+    status: str
+    iterations: int
+    active: np.ndarray
+    fallback: bool
+    f: np.ndarray
+    V: tuple
+    F_c: np.ndarray
+    tau_qp: np.ndarray
+
+
+class CPIC:
+    """ctrl = CPIC(robot, policy, config); tau, info = ctrl.step(q, dq, compensation) at 1 kHz.
+
+    QP over tau (n,):  min |J^+T tau - F_c|^2 + w |N (tau - tau_0)|^2,  J^+T = (J J^T)^-1 J (6, n),
+    N = I - J^T J^+T (null space of J), tau_0 = G - k_n dq, subject to, with ddq = M^-1 (tau - C dq - G)
+    (nominal model; tau_ext = 0 unless given), the E-CBF h'' >= -k1 h - k2 h' for h = q - q_min, q_max - q, and
+    |tau + comp| <= tau_max. With nothing active tau = J^T F_c + N tau_0 = G - J^T D (xdot - f) - k_n N dq
+    (Appendix D, unconstrained case, plus the null-space term a redundant arm needs). The compensation (e.g.
+    -robot.payload_torque(q, theta_hat)) is added after the QP (Appendix B). If the QP fails (infeasible,
+    singular J, ...) the safe torque G + comp - K dq is used; the output is always finite and within tau_max.
+    """
+
+    def __init__(self, robot, policy, config: CPICConfig | None = None):
+        self.robot, self.policy = robot, policy
+        self.config = c = CPICConfig() if config is None else config
+        n = robot.n
+        rng = robot.model.jnt_range
+        self.q_min = np.asarray(rng[:, 0] if c.q_min is None else c.q_min, dtype=float)
+        self.q_max = np.asarray(rng[:, 1] if c.q_max is None else c.q_max, dtype=float)
+        self.tau_max = np.asarray(c.tau_max, dtype=float)
+        for name, v in (("q_min", self.q_min), ("q_max", self.q_max), ("tau_max", self.tau_max),
+                        ("fallback_damping", np.asarray(c.fallback_damping))):
+            if v.shape != (n,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"config.{name}: expected {n} finite values (robot.n), found {v.tolist()}")
+        if np.any(self.q_min >= self.q_max) or np.any(self.tau_max <= 0):
+            raise ValueError(f"config: expected q_min < q_max and tau_max > 0, found {self.q_min}, "
+                             f"{self.q_max}, {self.tau_max}")
+        self._I = np.eye(n)
+        self._A = np.zeros((4 * n, n))                # constraint rows; the torque rows never change
+        self._A[2 * n:3 * n], self._A[3 * n:] = self._I, -self._I
+        self.reset()
+
+    def reset(self):
+        """Forget the warm start (previous active set)."""
+        self._active = []
+
+    def step(self, q, dq, compensation=None, tau_ext=None):
+        """q, dq (n,) measured; compensation (n,) added after the QP (None = 0). Returns (tau (n,), StepInfo).
+
+        tau_ext (n,), optional: the measured external torque (paper sign). None (default) = the nominal
+        dynamics of Appendix B, ddq = M^-1 (tau - C dq - G), assuming the compensation cancels the mismatch.
+        Given, the E-CBF predicts ddq = M^-1 (tau + comp - C dq - G + tau_ext) as in Eq. 7's equality, so a
+        push is resisted at the limit (without it a push d [rad/s^2] can overshoot a limit by about d / k1).
+        """
+        G, dq, comp, f, V, F_c, tau_free, Hinv, g, b = self._terms(q, dq, compensation, tau_ext)
+        if Hinv is None:
+            return self._fallback(G, dq, comp, f, V, F_c, "fallback: singular J or M")
+        if not self._active and (self._A @ tau_free - b).min() >= -1e-9:   # QP optimum = unconstrained one
+            tau_qp, status, it, active = tau_free, "optimal", 0, []
+        else:
+            try:
+                B = np.linalg.cholesky(Hinv).T        # B^T B = H^-1
+            except np.linalg.LinAlgError:
+                return self._fallback(G, dq, comp, f, V, F_c, "fallback: H not positive definite")
+            tau_qp, status, it, active, _ = dual_active_set(B, g, self._A, b, self._active,
+                                                            self.config.max_iterations)
+        if status != "optimal" or not np.isfinite(tau_qp).all():
+            self._active = []
+            return self._fallback(G, dq, comp, f, V, F_c, f"fallback: QP {status}")
+        self._active = active
+        tau = np.minimum(np.maximum(tau_qp + comp, -self.tau_max), self.tau_max)
+        return tau, StepInfo(status, it, np.array(active, dtype=int), False, f, V, F_c, tau_qp)
+
+    def qp(self, q, dq, compensation=None, tau_ext=None):
+        """The QP that step() solves at this state, for inspection: (H (n, n), g (n,), A (4n, n), b (4n,),
+        warm-start active set), ready for solve_qp(H, g, A, b, active)."""
+        Hinv, g, b = self._terms(q, dq, compensation, tau_ext)[-3:]
+        if Hinv is None:
+            raise ValueError("q: the Jacobian or the mass matrix is singular at this state")
+        H = np.linalg.inv(Hinv)
+        return 0.5 * (H + H.T), g, self._A.copy(), b, np.array(self._active, dtype=int)
+
+    def _terms(self, q, dq, compensation, tau_ext):
+        """Model terms, policy, F_c, the unconstrained optimum tau_free = J^T F_c + N tau_0 and the QP data
+        (H^-1, g, b); H^-1 = None when J J^T or M is singular."""
+        robot, c, n = self.robot, self.config, self.robot.n
+        J, M, bias = robot.terms(q, dq)               # validates q and dq
+        q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
+        comp = _check_torque("compensation", compensation, n)
+        if tau_ext is not None:
+            bias = bias - _check_torque("tau_ext", tau_ext, n) - comp
+        p, R = robot.ee_pose(q)
+        G = robot.gravity(q)
+        f, V = self.policy(p, R)
+        try:
+            Jp = np.linalg.solve(J @ J.T, J)          # J^+T (6, n)
+            F_c = impedance_wrench(Jp @ G, J @ dq, f, c.damping_pos, c.damping_rot)
+            Nproj = self._I - J.T @ Jp                # (n, n), projector onto the null space of J
+            # H = J^+ J^+T + w N has the closed-form inverse H^-1 = J^T J + N / w (J^+T J^T = I, J N = 0)
+            Hinv = J.T @ J + Nproj / c.null_weight
+            Hinv = 0.5 * (Hinv + Hinv.T)
+            null = Nproj @ (G - c.null_damping * dq)  # N tau_0
+            g = -(Jp.T @ F_c + c.null_weight * null)
+            b = self._constraint_bounds(q, dq, np.linalg.inv(M), bias, comp)
+        except np.linalg.LinAlgError:
+            return G, dq, comp, f, V, np.full(6, np.nan), None, None, None, None
+        return G, dq, comp, f, V, F_c, J.T @ F_c + null, Hinv, g, b
+
+    def _constraint_bounds(self, q, dq, Minv, bias, comp):
+        """b (4n,) for A tau >= b: rows +-M^-1 (E-CBF on q - q_min, q_max - q), then +-I (torque limits).
+        h = q - q_min: ddq + k2 dq + k1 (q - q_min) >= 0 with ddq = M^-1 (tau - bias)."""
+        c, n, A = self.config, self.robot.n, self._A
+        A[:n] = Minv
+        np.negative(Minv, out=A[n:2 * n])
+        a0 = Minv @ bias                              # ddq = M^-1 tau - a0
+        k_dq = c.k2 * dq
+        b = np.empty(4 * n)
+        b[:n] = a0 - c.k1 * (q - self.q_min) - k_dq
+        b[n:2 * n] = k_dq - c.k1 * (self.q_max - q) - a0
+        b[2 * n:3 * n] = -self.tau_max - comp
+        b[3 * n:] = comp - self.tau_max
+        return b
+
+    def _fallback(self, G, dq, comp, f, V, F_c, status):
+        """Safe torque when the QP has no answer: gravity compensation + compensation + joint damping, clipped."""
+        tau = G + comp - np.asarray(self.config.fallback_damping) * dq
+        tau = np.clip(np.where(np.isfinite(tau), tau, 0.0), -self.tau_max, self.tau_max)
+        return tau, StepInfo(status, 0, np.zeros(0, dtype=int), True, f, V, F_c, tau - comp)
+
+
+def _check_torque(name, v, n):
+    if v is None:
+        return np.zeros(n)
+    v = np.asarray(v, dtype=float)
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name}: expected a finite array of shape ({n},), found "
+                         f"{v.shape if v.shape != (n,) else v}")
+    return v
+
+
+def storage(dq, M, V, config: CPICConfig):
+    """S = 1/2 dq^T M dq + lambda_1 V (Prop. 4.1), with lambda_1 V = lambda_1,pos V_pos + lambda_1,rot V_rot.
+    Joint-space kinetic energy: it equals 1/2 xdot^T M_x xdot plus the null-space motion's kinetic energy."""
+    return 0.5 * dq @ M @ dq + config.damping_pos[0] * V[0] + config.damping_rot[0] * V[1]
+
+
+def run_closed_loop(plant, ctrl, first, seconds, compensation=None, use_tau_ext=False):
+    """Run ctrl on a sim.Plant for `seconds` from the Sample `first`. compensation: None or a callable
+    (t, q) -> (n,) torque or None (e.g. -robot.payload_torque(q, theta_hat) once an estimate exists).
+    Returns arrays t (T,), q, dq (T, n) as the controller saw them, its tau (T, n), V (T, 2), fallback (T,)."""
+    s, steps, n = first, int(round(seconds / plant.dt)), ctrl.robot.n
+    log = {"t": np.empty(steps), "q": np.empty((steps, n)), "dq": np.empty((steps, n)),
+           "tau": np.empty((steps, n)), "V": np.empty((steps, 2)), "fallback": np.zeros(steps, dtype=bool)}
+    for k in range(steps):
+        comp = None if compensation is None else compensation(s.t, s.q)
+        tau, info = ctrl.step(s.q, s.dq, comp, s.tau_ext if use_tau_ext else None)
+        log["t"][k], log["q"][k], log["dq"][k] = s.t, s.q, s.dq
+        log["tau"][k], log["V"][k], log["fallback"][k] = tau, info.V, info.fallback
+        s = plant.step(tau)
+    return log
+
+
+def benchmark(seconds=0.6, repeats=5):
+    """Median microseconds of solve_qp on the controller's own QPs, recorded in a simulated hold (a 5 cm / 0.3 rad
+    pose step that drives wrist joints into their E-CBF constraints, a 0.9 kg payload at 0.2 s, a 42 N push from
+    0.3 s to 0.5 s), split by whether constraints are active, and of one full ctrl.step (model terms + QP)."""
+    from sim import Plant, PlantConfig, Q_READY       # the plant is only needed here
+    plant = Plant(PlantConfig.ideal())
+    robot, s = plant.robot, plant.reset(Q_READY)
+    p0, R0 = robot.ee_pose(Q_READY)
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.3), -np.sin(0.3)], [0.0, np.sin(0.3), np.cos(0.3)]])
+    ctrl = CPIC(robot, Attractor(p0 + np.array([0.05, -0.05, 0.05]), tilt @ R0))
+    plant.schedule_payload(0.2, 0.9, (0.05, -0.03, 0.13))
+    plant.push(np.array([0.0, 30.0, -30.0]), start=0.3, duration=0.2)
+    problems, states = [], []
+    for _ in range(int(round(seconds / plant.dt))):
+        problems.append(ctrl.qp(s.q, s.dq))
+        states.append((s.q, s.dq))
+        s = plant.step(ctrl.step(s.q, s.dq)[0])
+
+    def best_us(fn):
+        return 1e6 * min(timeit.repeat(fn, number=1, repeat=repeats))
+
+    qp_us = np.array([best_us(lambda P=P: solve_qp(*P)) for P in problems])
+    active = np.array([len(solve_qp(*P)[1].active) > 0 for P in problems])
+    inverses = [np.linalg.inv(P[0]) for P in problems]             # the loop has H^-1 in closed form
+    loop_us = np.array([best_us(lambda P=P, Hi=Hi: dual_active_set(np.linalg.cholesky(Hi).T, *P[1:], 100))
+                        for P, Hi in zip(problems, inverses)])
+    step_us = np.full(len(states), np.inf)
+    for _ in range(repeats):                          # whole passes in order: the warm start the loop sees
+        ctrl.reset()
+        for k, (q, dq) in enumerate(states):
+            t0 = time.perf_counter()
+            ctrl.step(q, dq)
+            step_us[k] = min(step_us[k], 1e6 * (time.perf_counter() - t0))
+    model_us = [best_us(lambda q=q, dq=dq: (robot.terms(q, dq), robot.ee_pose(q), robot.gravity(q)))
+                for q, dq in states[::10]]
+    return {"problems": len(problems), "fraction_with_active_constraints": float(active.mean()),
+            "solve_qp_median_us": float(np.median(qp_us)),
+            "solve_qp_median_us_none_active": float(np.median(qp_us[~active])),
+            "solve_qp_median_us_some_active": float(np.median(qp_us[active])),
+            "in_loop_qp_median_us_some_active": float(np.median(loop_us[active])),   # Cholesky + solver
+            "step_median_us": float(np.median(step_us)), "model_terms_median_us": float(np.median(model_us))}
+
+
+if __name__ == "__main__":
+    for key, value in benchmark().items():
+        print(f"{key:36s} {value if isinstance(value, int) else round(value, 3)}")

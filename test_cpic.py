@@ -1,0 +1,449 @@
+"""Tests of cpic.py: the active-set QP solver against closed-form optima and an exhaustive active-set reference,
+the policies and the impedance law against closed forms, and CPIC in closed loop on the MuJoCo plant."""
+import itertools
+
+import mujoco
+import numpy as np
+import pytest
+
+from cpic import (CPIC, Attractor, CPICConfig, LimitCycle, damping_matrix, impedance_wrench, rotation_log,
+                  run_closed_loop, solve_qp, storage)
+from sim import Plant, PlantConfig, Q_READY
+
+TAU_MAX = np.array([87.0] * 4 + [12.0] * 3)
+THETA = np.array([0.9, 0.05, -0.03, 0.13])           # a Table 5 payload
+
+
+# --- QP solver -----------------------------------------------------------------------------------------------
+def random_spd(rng, n=7):
+    B = rng.normal(size=(n, n))
+    return B @ B.T + 0.1 * np.eye(n)
+
+
+def constructed_qp(rng, n=7):
+    """A QP whose optimum x* is known by construction: k active constraints with multipliers > 0 (sometimes one
+    weakly active: multiplier 0, slack 0), the rest strictly inactive; H x* + g = A^T lambda."""
+    m = int(rng.integers(n, 29))
+    k = int(rng.integers(0, n + 1))
+    H, A, x_star = random_spd(rng, n), rng.normal(size=(m, n)), rng.normal(size=n)
+    lam = np.zeros(m)
+    lam[:k] = rng.uniform(0.1, 10.0, k)
+    slack = np.where(np.arange(m) < k, 0.0, rng.uniform(0.1, 2.0, m))
+    if k < n and rng.random() < 0.2:
+        slack[k] = 0.0                                # weakly active: degenerate but x* unchanged
+    perm = rng.permutation(m)
+    A, lam, slack = A[perm], lam[perm], slack[perm]
+    b = A @ x_star - slack
+    g = A.T @ lam - H @ x_star
+    return H, g, A, b, x_star, k
+
+
+def kkt_violation(H, g, A, b, x, lam):
+    s = A @ x - b
+    return max(np.abs(H @ x + g - A.T @ lam).max(), max(0.0, -s.min()), max(0.0, -lam.min()),
+               np.abs(lam * s).max())
+
+
+def objective(H, g, x):
+    return 0.5 * x @ H @ x + g @ x
+
+
+def test_qp_matches_closed_form_optimum_on_200_constructed_problems():
+    rng = np.random.default_rng(0)
+    active_sizes = []
+    for _ in range(200):
+        H, g, A, b, x_star, k = constructed_qp(rng)
+        x, info = solve_qp(H, g, A, b)
+        assert info.status == "optimal"
+        f_ref = objective(H, g, x_star)
+        assert abs(objective(H, g, x) - f_ref) <= 1e-8 * max(1.0, abs(f_ref))
+        assert np.abs(x - x_star).max() <= 1e-8 * max(1.0, np.abs(x_star).max())
+        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
+        assert info.residual <= 1e-8
+        active_sizes.append(k)
+    assert max(active_sizes) == 7 and np.mean(np.array(active_sizes) >= 5) > 0.2   # many-active cases are in
+
+
+def enumeration_reference(H, g, A, b, tol=1e-9):
+    """Exhaustive search over active sets (at most n of them): the KKT point with lambda >= 0 that is feasible."""
+    n, m = len(g), len(b)
+    for k in range(min(n, m) + 1):
+        subsets = list(itertools.combinations(range(m), k))
+        S = np.array(subsets, dtype=int).reshape(len(subsets), k)
+        K = np.zeros((len(S), n + k, n + k))
+        K[:, :n, :n] = H
+        K[:, :n, n:] = -A[S].transpose(0, 2, 1)
+        K[:, n:, :n] = A[S]
+        rhs = np.zeros((len(S), n + k))
+        rhs[:, :n], rhs[:, n:] = -g, b[S]
+        ok = np.abs(np.linalg.det(K)) > 1e-12
+        sol = np.linalg.solve(K[ok], rhs[ok][..., None])[..., 0]
+        x, lam = sol[:, :n], sol[:, n:]
+        good = (lam.min(axis=1, initial=0.0) >= -tol) & ((x @ A.T - b).min(axis=1) >= -tol)
+        if good.any():
+            return x[np.argmax(good)]
+    raise AssertionError("no KKT point found")
+
+
+def test_qp_matches_active_set_enumeration_on_random_problems():
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        m = int(rng.integers(1, 13))
+        H, A, x0 = random_spd(rng), rng.normal(size=(m, 7)), rng.normal(size=7)
+        b = A @ x0 - np.abs(rng.normal(size=m)) * rng.integers(0, 2, size=m)     # feasible (x0), some tight
+        g = 5.0 * rng.normal(size=7)
+        x, info = solve_qp(H, g, A, b)
+        x_ref = enumeration_reference(H, g, A, b)
+        f_ref = objective(H, g, x_ref)
+        assert info.status == "optimal"
+        assert abs(objective(H, g, x) - f_ref) <= 1e-8 * max(1.0, abs(f_ref))
+        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
+
+
+def test_qp_satisfies_kkt_on_random_28_constraint_problems():
+    rng = np.random.default_rng(2)
+    for _ in range(100):
+        H, A, x0 = random_spd(rng), rng.normal(size=(28, 7)), rng.normal(size=7)
+        b = A @ x0 - np.abs(rng.normal(size=28)) * rng.integers(0, 2, size=28)
+        g = 5.0 * rng.normal(size=7)
+        x, info = solve_qp(H, g, A, b)
+        assert info.status == "optimal"
+        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
+
+
+def test_qp_handles_dependent_and_overdetermined_active_constraints():
+    """Degenerate optima: an active row duplicated (scaled), active rows' combinations weakly active, or more
+    than n constraints through x*; from a cold start and from a random (mostly wrong) warm start."""
+    rng = np.random.default_rng(10)
+    for t in range(90):
+        n, m, k = 7, int(rng.integers(11, 29)), int(rng.integers(1, 8))
+        H, A, x_star = random_spd(rng), rng.normal(size=(m, 7)), rng.normal(size=7)
+        lam = np.where(np.arange(m) < k, rng.uniform(0.1, 5.0, m), 0.0)
+        slack = np.where(np.arange(m) < k, 0.0, rng.uniform(0.1, 2.0, m))
+        if t % 3 == 0:
+            A[k] = A[0] * rng.uniform(0.5, 2.0)
+        elif t % 3 == 1:
+            A[k:k + 2] = rng.normal(size=(2, k)) @ A[:k]
+        slack[k:k + 1 + t % 3] = 0.0
+        b, g = A @ x_star - slack, A.T @ lam - H @ x_star
+        for active in (None, rng.permutation(m)[:9]):
+            x, info = solve_qp(H, g, A, b, active=active)
+            assert info.status == "optimal" and np.abs(x - x_star).max() <= 1e-8 * max(1.0, np.abs(x_star).max())
+            assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
+
+
+def test_qp_warm_start_gives_same_answer_in_fewer_iterations():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        H, g, A, b, x_star, k = constructed_qp(rng)
+        x_cold, cold = solve_qp(H, g, A, b)
+        x_warm, warm = solve_qp(H, g, A, b, active=cold.active)
+        assert np.abs(x_warm - x_cold).max() <= 1e-10 * max(1.0, np.abs(x_cold).max())
+        assert warm.iterations == 0 and (cold.iterations >= len(cold.active))
+        if len(cold.active):
+            assert warm.iterations < cold.iterations
+        # a wrong warm start (extra inactive constraints, shuffled) still ends at the optimum
+        wrong = rng.permutation(np.concatenate([cold.active, rng.integers(0, len(b), 3)]))
+        x_wrong, info = solve_qp(H, g, A, b, active=wrong)
+        assert info.status == "optimal" and np.abs(x_wrong - x_star).max() <= 1e-8 * max(1.0, np.abs(x_star).max())
+
+
+def test_qp_reports_infeasible_without_raising():
+    H, g = np.eye(2), np.zeros(2)
+    cases = [(np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([1.0, 0.0])),       # x1 >= 1 and x1 <= 0
+             (np.array([[0.0, 0.0]]), np.array([1.0])),                          # 0 >= 1
+             (np.array([[1.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]), np.array([3.0, -1.0, -1.0]))]
+    for A, b in cases:
+        x, info = solve_qp(H, g, A, b)
+        assert info.status == "infeasible" and np.isfinite(x).all()
+
+
+def test_qp_infeasibility_verdict_matches_scipy_linprog():
+    from scipy.optimize import linprog
+    rng = np.random.default_rng(12)
+    verdicts = []
+    for _ in range(200):
+        n, m = int(rng.integers(1, 8)), int(rng.integers(1, 29))
+        H, g = random_spd(rng, n), rng.normal(size=n)
+        A = rng.normal(size=(m, n)) * 10.0 ** rng.uniform(-2, 2, (m, 1))
+        if m > 2 and rng.random() < 0.3:
+            A[1] = -A[0] * rng.uniform(0.5, 2.0)               # opposite half-spaces
+        b = rng.normal(size=m) * 10.0 ** rng.uniform(-1, 1)
+        x, info = solve_qp(H, g, A, b, active=rng.integers(0, m, size=int(rng.integers(0, m + 1))))
+        feasible = linprog(np.zeros(n), A_ub=-A, b_ub=-b, bounds=[(None, None)] * n, method="highs").status == 0
+        assert info.status == ("optimal" if feasible else "infeasible") and np.isfinite(x).all()
+        verdicts.append(feasible)
+    assert 0.2 < np.mean(verdicts) < 0.8                                  # both verdicts are exercised
+
+
+def test_qp_rejects_bad_input_with_named_value_error():
+    H, g, A, b = np.eye(3), np.zeros(3), np.ones((2, 3)), np.zeros(2)
+    bad = [((np.eye(2), g, A, b), "H"), ((H, g, np.ones((2, 4)), b), "A"), ((H, g, A, np.zeros((2, 1))), "b"),
+           ((H, np.array([0.0, np.nan, 0.0]), A, b), "g"), ((np.diag([1.0, -1.0, 1.0]), g, A, b), "H"),
+           ((H + np.triu(np.ones((3, 3)), 1), g, A, b), "H"), ((np.zeros((3, 3)), g, A, b), "H")]
+    for args, name in bad:
+        with pytest.raises(ValueError, match=f"^{name}:"):
+            solve_qp(*args)
+    with pytest.raises(ValueError, match="^active:"):
+        solve_qp(H, g, A, b, active=[5])
+
+
+# --- policies and the impedance law --------------------------------------------------------------------------
+def rot(axis, angle):
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_rotvec(np.asarray(axis, float) / np.linalg.norm(axis) * angle).as_matrix()
+
+
+def test_rotation_log_matches_scipy_including_near_zero_and_pi():
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(4)
+    for angle in np.concatenate([rng.uniform(0, np.pi, 30), [0.0, 1e-9, 1e-7, np.pi - 1e-6, np.pi - 1e-3]]):
+        axis = rng.normal(size=3)
+        R = rot(axis, angle)
+        ref = Rotation.from_matrix(R).as_rotvec()
+        e = rotation_log(R)
+        if angle > np.pi - 1e-3:                      # +-pi axis ambiguity: compare the rotations
+            assert np.allclose(rot(e, np.linalg.norm(e)) if np.linalg.norm(e) else np.eye(3), R, atol=1e-9)
+        else:
+            assert np.allclose(e, ref, atol=1e-9)
+
+
+def test_attractor_velocity_is_minus_gradient_of_its_lyapunov_function():
+    rng = np.random.default_rng(5)
+    pol = Attractor(np.array([0.4, 0.1, 0.5]), rot([1, 2, 3], 0.7))
+    for _ in range(10):
+        p, R = pol.p_star + 0.2 * rng.normal(size=3), rot(rng.normal(size=3), rng.uniform(0, 2.5)) @ pol.R_star
+        f, _ = pol(p, R)
+        h = 1e-6
+        for i in range(3):                            # d V / d p_i = -f_v,i
+            dp = h * np.eye(3)[i]
+            dV = (sum(pol(p + dp, R)[1]) - sum(pol(p - dp, R)[1])) / (2 * h)
+            assert abs(dV + f[i]) <= 1e-6
+            dV = (sum(pol(p, rot(np.eye(3)[i], h) @ R)[1]) - sum(pol(p, rot(np.eye(3)[i], -h) @ R)[1])) / (2 * h)
+            assert abs(dV + f[3 + i]) <= 1e-6        # world-frame angular velocity: dV = grad V . w dt
+    f, V = pol(pol.p_star, pol.R_star)
+    assert np.abs(f).max() == 0.0 and V == (0.0, 0.0)
+
+
+def test_limit_cycle_lyapunov_function_decreases_and_cycle_is_invariant():
+    rng = np.random.default_rng(6)
+    pol = LimitCycle(np.array([0.3, 0.0, 0.5]), radius=0.1, period=4.0)
+    for _ in range(20):
+        p = pol.center + 0.15 * rng.normal(size=3)
+        f, V = pol(p, np.eye(3))
+        h = 1e-6
+        grad = np.array([(pol(p + h * e, np.eye(3))[1][0] - pol(p - h * e, np.eye(3))[1][0]) / (2 * h)
+                         for e in np.eye(3)])
+        assert grad @ f[:3] <= 1e-9
+    phi = 0.3
+    p = pol.center + 0.1 * np.array([0.0, np.cos(phi), np.sin(phi)])
+    f, V = pol(p, np.eye(3))
+    assert V[0] == pytest.approx(0.0, abs=1e-15)
+    assert np.allclose(f[:3], 2 * np.pi / 4.0 * 0.1 * np.array([0.0, -np.sin(phi), np.cos(phi)]), atol=1e-12)
+
+
+def test_damping_matrix_has_first_eigenvector_along_f():
+    rng = np.random.default_rng(7)
+    lam = np.array([100.0, 150.0, 200.0])
+    for f in list(rng.normal(size=(20, 3))) + [np.zeros(3), np.array([0.0, 0.0, 1e-15])]:
+        D = damping_matrix(f, lam)
+        assert np.allclose(D, D.T, atol=1e-12)
+        assert np.allclose(np.linalg.eigvalsh(D), lam, atol=1e-9)
+        if np.linalg.norm(f) > 1e-12:
+            assert np.allclose(D @ f, lam[0] * f, atol=1e-9 * np.linalg.norm(f) * lam[0])
+
+
+def test_impedance_wrench_matches_closed_form():
+    rng = np.random.default_rng(8)
+    for _ in range(10):
+        G_x, xdot, f = rng.normal(size=(3, 6))
+        lp, lr = (100.0, 150.0, 150.0), (2.0, 5.0, 5.0)
+        F = impedance_wrench(G_x, xdot, f, lp, lr)
+        ref = []
+        for s, (l1, l2, _) in ((slice(0, 3), lp), (slice(3, 6), lr)):
+            u = f[s] / np.linalg.norm(f[s])
+            ref.append((l2 * np.eye(3) + (l1 - l2) * np.outer(u, u)) @ (xdot[s] - f[s]))
+        assert np.allclose(F, G_x - np.concatenate(ref), atol=1e-12)
+        # distinct eigenvalues go through the explicit Q Lambda Q^T
+        F3 = impedance_wrench(G_x, xdot, f, (100.0, 150.0, 200.0), lr)
+        assert np.allclose(F3[:3], G_x[:3] - damping_matrix(f[:3], (100.0, 150.0, 200.0)) @ (xdot - f)[:3])
+
+
+# --- the controller ------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def robot():
+    return Plant(PlantConfig.ideal()).robot
+
+
+def test_unconstrained_qp_torque_equals_JT_Fc_plus_null_space_term(robot):
+    """Appendix D: with no constraint active tau = J^T F_c; the 7-DoF arm adds N tau_0 in the null space of J."""
+    rng = np.random.default_rng(9)
+    p0, R0 = robot.ee_pose(Q_READY)
+    config = CPICConfig(damping_pos=(100.0, 150.0, 150.0))
+    ctrl = CPIC(robot, Attractor(p0 + np.array([0.02, -0.01, 0.03]), rot([1, 0, 0], 0.01) @ R0), config)
+    q, dq = Q_READY + 0.01 * rng.normal(size=7), 0.01 * rng.normal(size=7)
+    tau, info = ctrl.step(q, dq)
+    assert len(info.active) == 0 and not info.fallback
+    J, G = robot.jacobian(q), robot.gravity(q)
+    p, R = robot.ee_pose(q)
+    from scipy.spatial.transform import Rotation
+    pol = ctrl.policy
+    f = np.concatenate([-pol.gain_pos * (p - pol.p_star),
+                        -pol.gain_rot * Rotation.from_matrix(R @ pol.R_star.T).as_rotvec()])
+    u = f[:3] / np.linalg.norm(f[:3])
+    D = np.zeros((6, 6))
+    D[:3, :3] = 150.0 * np.eye(3) - 50.0 * np.outer(u, u)
+    D[3:, 3:] = 2.5 * np.eye(3)
+    F_c = np.linalg.pinv(J).T @ G - D @ (J @ dq - f)                     # Eq. 6, G_x = J^+T G
+    N = np.eye(7) - np.linalg.pinv(J) @ J
+    assert np.allclose(info.F_c, F_c, atol=1e-9)
+    assert np.allclose(info.tau_qp, J.T @ F_c + N @ (G - 1.0 * dq), atol=1e-8)
+    assert np.allclose(np.linalg.pinv(J.T) @ tau, F_c, atol=1e-8)        # J^-T tau = F_c exactly
+    x, qp_info = solve_qp(*ctrl.qp(q, dq))                                # the QP itself has that optimum
+    assert len(qp_info.active) == 0 and np.allclose(x, info.tau_qp, atol=1e-8)
+    # the compensation is added after the QP and does not change it (Appendix B)
+    comp = -robot.payload_torque(q, THETA)
+    tau_c, info_c = ctrl.step(q, dq, comp)
+    assert np.allclose(info_c.tau_qp, info.tau_qp, atol=1e-9) and np.allclose(tau_c, tau + comp, atol=1e-9)
+
+
+def test_step_rejects_bad_input(robot):
+    p0, R0 = robot.ee_pose(Q_READY)
+    ctrl = CPIC(robot, Attractor(p0, R0))
+    for args, name in [((np.zeros(3), np.zeros(7)), "q"), ((Q_READY, np.full(7, np.nan)), "dq"),
+                       ((Q_READY, np.zeros(7), np.zeros(6)), "compensation"),
+                       ((Q_READY, np.zeros(7), None, np.full(7, np.inf)), "tau_ext")]:
+        with pytest.raises(ValueError, match=f"^{name}:"):
+            ctrl.step(*args)
+    with pytest.raises(ValueError, match="tau_max"):
+        CPIC(robot, Attractor(p0, R0), CPICConfig(tau_max=(87.0,) * 6))
+
+
+def test_infeasible_qp_or_singular_jacobian_falls_back_to_safe_torque(robot):
+    p0, R0 = robot.ee_pose(Q_READY)
+    ctrl = CPIC(robot, Attractor(p0, R0))
+    q, dq = Q_READY.copy(), np.zeros(7)
+    q[1], dq[1] = ctrl.q_max[1] - 1e-3, 2.0       # joint 2 at its limit, 2 rad/s outwards: 87 Nm cannot stop it
+    tau, info = ctrl.step(q, dq)
+    assert info.fallback and info.status == "fallback: QP infeasible"
+    ref = np.clip(robot.gravity(q) - np.array(CPICConfig().fallback_damping) * dq, -TAU_MAX, TAU_MAX)
+    assert np.allclose(tau, ref) and np.isfinite(tau).all()
+    tau, info = ctrl.step(np.zeros(7), np.zeros(7))   # arm straight up: J loses rank (shoulder-wrist aligned)
+    assert info.fallback and np.allclose(tau, np.clip(robot.gravity(np.zeros(7)), -TAU_MAX, TAU_MAX))
+
+
+def run(preset_payload, ctrl_factory, seconds, push=None, comp=None, use_tau_ext=False, q0=Q_READY):
+    plant = Plant(PlantConfig.ideal())
+    if preset_payload is not None:
+        plant.set_payload(*preset_payload)
+    first = plant.reset(q0)
+    if push is not None:
+        plant.push(push, body="link7", start=0.02, duration=0.3)
+    ctrl = ctrl_factory(plant.robot)
+    return run_closed_loop(plant, ctrl, first, seconds, comp, use_tau_ext), ctrl, plant
+
+
+def limit_inside_free_motion(robot, free, fraction=0.4):
+    """Limits that the joint moving most in the barrier-free run `free` would pass: at `fraction` of its excursion."""
+    excursion = free["q"] - free["q"][0]
+    j = int(np.argmax(np.abs(excursion).max(axis=0)))
+    e = excursion[np.argmax(np.abs(excursion[:, j])), j]
+    q_min, q_max = robot.model.jnt_range[:, 0].copy(), robot.model.jnt_range[:, 1].copy()
+    (q_max if e > 0 else q_min)[j] = free["q"][0, j] + fraction * e
+    return j, e, CPICConfig(q_min=tuple(q_min), q_max=tuple(q_max))
+
+
+WIDE = CPICConfig(q_min=(-9.0,) * 7, q_max=(9.0,) * 7)                    # no barrier in reach
+
+
+def test_joint_limit_holds_while_attractor_drives_joint_past_it(robot):
+    p0, R0 = robot.ee_pose(Q_READY)
+    target = Attractor(p0 + np.array([0.0, 0.25, -0.1]), R0)
+    free, _, _ = run(None, lambda r: CPIC(r, target, WIDE), 1.0)
+    j, e, config = limit_inside_free_motion(robot, free)
+    assert abs(e) > 0.2                                                   # the attractor moves the joint a lot
+    log, ctrl, _ = run(None, lambda r: CPIC(r, target, config), 1.0)
+    assert (log["q"] >= ctrl.q_min).all() and (log["q"] <= ctrl.q_max).all()
+    assert np.abs(log["q"][:, j] - Q_READY[j]).max() > 0.3 * 0.4 * abs(e)  # ... and it did approach the limit
+    assert np.isfinite(log["tau"]).all() and (np.abs(log["tau"]) <= TAU_MAX).all()
+
+
+def test_joint_limit_holds_under_a_push_with_measured_tau_ext(robot):
+    p0, R0 = robot.ee_pose(Q_READY)
+    hold = Attractor(p0, R0)
+    push = np.array([0.0, 0.0, -60.0])
+    free, _, _ = run(None, lambda r: CPIC(r, hold, WIDE), 0.4, push=push)
+    j, e, config = limit_inside_free_motion(robot, free)
+    assert abs(e) > 0.1                                                   # the push alone would pass the limit
+    log, ctrl, _ = run(None, lambda r: CPIC(r, hold, config), 0.4, push=push, use_tau_ext=True)
+    assert (log["q"] >= ctrl.q_min).all() and (log["q"] <= ctrl.q_max).all()
+    assert np.isfinite(log["tau"]).all() and (np.abs(log["tau"]) <= TAU_MAX).all() and not log["fallback"].any()
+
+
+def test_torques_stay_within_limits_when_the_policy_asks_for_more(robot):
+    p0, R0 = robot.ee_pose(Q_READY)
+    far = Attractor(p0 + np.array([0.1, 0.2, -0.1]), rot([1, 1, 0], 0.5) @ R0)
+    low = np.array([15.0] * 4 + [2.0] * 3)                               # lowered limits the demand exceeds
+    log, ctrl, _ = run(None, lambda r: CPIC(r, far, CPICConfig(tau_max=tuple(low))), 0.3)
+    assert np.isfinite(log["tau"]).all() and (np.abs(log["tau"]) <= low).all() and not log["fallback"].any()
+    assert np.isclose(np.abs(log["tau"]) / low, 1.0).any()                 # a limit was reached, none passed
+
+
+def plant_mass_matrix(plant, q):
+    d, M = mujoco.MjData(plant.model), np.zeros((7, 7))
+    d.qpos[:] = q
+    mujoco.mj_forward(plant.model, d)
+    mujoco.mj_fullM(plant.model, d, M)
+    return M
+
+
+def test_storage_function_never_increases_with_exact_compensation(robot):
+    """Prop. 4.1 with Delta F_mm = 0, F_ext = 0: S = 1/2 dq^T M dq + lambda_1 V is non-increasing (the plant's
+    true M, payload included; joint-space kinetic energy = 1/2 xdot^T M_x xdot + null-space motion)."""
+    p0, R0 = robot.ee_pose(Q_READY)
+    pol = Attractor(p0 + np.array([0.03, -0.04, 0.05]), rot([0, 0, 1], 0.2) @ R0)
+    comp = lambda t, q: -robot.payload_torque(q, THETA)
+    log, ctrl, plant = run((THETA[0], THETA[1:]), lambda r: CPIC(r, pol), 0.5, comp=comp)
+    S = np.array([storage(dq, plant_mass_matrix(plant, q), V, ctrl.config)
+                  for q, dq, V in zip(log["q"], log["dq"], log["V"])])
+    assert np.diff(S).max() <= 1e-9                                    # tolerance: rounding [J]
+    assert S[-1] < 0.1 * S[0]
+
+
+def test_uncompensated_payload_sags_to_the_predicted_spurious_equilibrium(robot):
+    """Appendix D: Delta F_mm = F_c at the spurious equilibrium: lambda_1 a_p (p* - p) + m g = 0, i.e. a sag of
+    m g / (lambda_1 a_p) = 19.6 mm straight down; exact compensation returns the arm to the attractor."""
+    p0, R0 = robot.ee_pose(Q_READY)
+    hold = Attractor(p0, R0)
+    none, _, _ = run((THETA[0], THETA[1:]), lambda r: CPIC(r, hold), 1.5)
+    p_end = robot.ee_pose(none["q"][-1])[0]
+    sag = THETA[0] * 9.81 / (CPICConfig().damping_pos[0] * hold.gain_pos)
+    assert np.allclose(p_end - p0, [0.0, 0.0, -sag], atol=3e-4)
+    assert np.abs(none["dq"][-1]).max() < 0.01                              # settled: an equilibrium
+    comp = lambda t, q: -robot.payload_torque(q, THETA)
+    exact, _, _ = run((THETA[0], THETA[1:]), lambda r: CPIC(r, hold), 1.5, comp=comp)
+    assert np.linalg.norm(robot.ee_pose(exact["q"][-1])[0] - p0) < 3e-4
+
+
+def test_limit_cycle_is_tracked_in_closed_loop(robot):
+    p0, R0 = robot.ee_pose(Q_READY)
+    pol = LimitCycle(p0 - np.array([0.0, 0.1, 0.0]), R0, radius=0.1, period=4.0)
+    log, _, _ = run(None, lambda r: CPIC(r, pol), 1.5)
+    e = robot.ee_pose(log["q"])[0] - pol.center
+    late = log["t"] > 0.5
+    assert np.abs(np.hypot(e[late, 1], e[late, 2]) - 0.1).max() < 0.005 and np.abs(e[late, 0]).max() < 0.005
+    phase = np.unwrap(np.arctan2(e[late, 2], e[late, 1]))
+    rate = (phase[-1] - phase[0]) / (log["t"][late][-1] - log["t"][late][0])
+    assert rate == pytest.approx(2 * np.pi / 4.0, rel=0.05)
+
+
+def test_realistic_plant_keeps_torques_finite_and_within_limits():
+    rng = np.random.default_rng(11)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    robot, first = plant.robot, plant.reset(Q_READY)
+    plant.schedule_payload(0.1, *THETA[:1], THETA[1:])
+    plant.push(np.array([20.0, 0.0, 0.0]), start=0.2, duration=0.1)
+    p0, R0 = robot.ee_pose(Q_READY)
+    log = run_closed_loop(plant, CPIC(robot, Attractor(p0, R0)), first, 0.4, use_tau_ext=True)
+    assert np.isfinite(log["tau"]).all() and (np.abs(log["tau"]) <= TAU_MAX).all() and not log["fallback"].any()
+    assert np.linalg.norm(robot.ee_pose(log["q"][-1])[0] - p0) < 0.03
