@@ -374,9 +374,14 @@ def _demo(module, name):
 
 
 DEMOS = {
+    "static": ("(default) CPIC holds a pose, an unknown payload arrives, RME detects, estimates, compensates",
+               _demo("scenarios", "static_hold")),
+    "basket": ("sequential loads added and removed with human pushes in between", _demo("scenarios", "basket")),
+    "pick-place": ("move, grasp, carry (+0.5 kg mid-carry), place", _demo("scenarios", "pick_place")),
     "payload": ("measured tau_ext beside payload_torque for the true payload", demo_payload),
     "hold": ("CPIC static hold, payload at 1.75 s, without and with exact compensation", _demo("demos", "hold")),
-    "limit-cycle": ("CPIC tracking a y-z limit cycle with a payload", _demo("demos", "limit_cycle")),
+    "limit-cycle": ("CPIC tracking a y-z limit cycle, a payload added, without and with RME",
+                    _demo("scenarios", "limit_cycle")),
     "timing": ("median microseconds of every hot path", _demo("bench", "timing")),
     "bench": ("the paper's Tables 1, 4, 5 in simulation (--json for one JSON object)", _demo("bench", "bench")),
 }
@@ -384,7 +389,7 @@ DEMOS = {
 
 def main(argv=None):
     p = argparse.ArgumentParser(description="MuJoCo Panda demos and benchmarks for Rapid Mismatch Estimation.")
-    p.add_argument("demo", nargs="?", default="payload", choices=sorted(DEMOS),
+    p.add_argument("demo", nargs="?", default="static", choices=sorted(DEMOS),
                    help="; ".join(f"{k}: {v[0]}" for k, v in sorted(DEMOS.items())))
     p.add_argument("--preset", default="realistic", choices=("ideal", "realistic"), help="plant and sensors")
     p.add_argument("--seed", type=int, default=0, help="seed of the np.random.Generator")

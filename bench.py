@@ -1,0 +1,186 @@
+"""The paper's tables reproduced in simulation (Sec. 5.1-5.2, Tables 1, 4 and 5) and the timing of every hot path:
+`python sim.py bench [--json]` and `python sim.py timing`. Every figure in the README comes from these."""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from dynamics import Robot
+from sim import N, Q_READY, JointHold, Plant, PlantConfig
+
+TABLE5 = [(0.300, 0.03, 0.00, 0.13), (0.500, 0.06, 0.00, 0.13), (0.700, 0.06, 0.00, 0.13),
+          (0.900, 0.05, -0.03, 0.13), (1.100, 0.05, 0.02, 0.13), (1.290, 0.05, 0.01, 0.13)]   # paper Table 5
+PAPER = {"table1": {"nn": [0.229e-3, 0.366e-3, 0.629e-3, 2.560e-3], "zero": [0.319e-3, 0.594e-3, 0.880e-3, 6.513e-3]},
+         "table4": {"50": [2.480e-3, 1.607e-3, 0.574e-3, 8.935e-3], "100": [2.436e-3, 0.909e-3, 0.468e-3, 4.827e-3],
+                    "200": [2.467e-3, 0.86e-3, 0.396e-3, 3.88e-3], "300": [2.081e-3, 0.979e-3, 0.477e-3, 1.25e-3]},
+         "estimate_ms_median": 226.0, "attach_to_compensation_ms_median": 400.0}
+
+
+def median_us(fn, repeats=2000):
+    """Median wall time of fn() in microseconds over `repeats` calls (after 20 warm-up calls)."""
+    for _ in range(20):
+        fn()
+    ts = np.empty(repeats)
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts[i] = time.perf_counter() - t0
+    return float(np.median(ts) * 1e6)
+
+
+def datasets(count, seed, longest=300):
+    """`count` simulated static-hold episodes with random payloads (the training distribution, other seeds):
+    list of (q (longest, 7), tau_ext referred to before the change (longest, 7), theta (4,))."""
+    import dataclasses
+    from nn_numpy import DataConfig, random_pose, simulate_episode
+    rng = np.random.default_rng(seed)
+    cfg = dataclasses.replace(DataConfig(), window=longest)
+    robot = Robot.panda()
+    lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
+    out = []
+    for _ in range(count):
+        q0, theta = random_pose(robot, rng, cfg), rng.uniform(lo, hi)
+        Qw, Tw = simulate_episode(q0, theta, rng.uniform(0.0, 0.3, 1), rng, cfg)
+        out.append((Qw[0], Tw[0], theta))
+    return out
+
+
+def mse_table(est, data, length):
+    """MSE per parameter of est.estimate on the first `length` samples of each dataset; and the wall times."""
+    err, secs = [], []
+    for q, tau, theta in data:
+        e = est.estimate(q[:length], tau[:length])
+        err.append(e.mean - theta)
+        secs.append(e.seconds)
+    return np.mean(np.square(err), axis=0).tolist(), secs
+
+
+def closed_loop_trial(theta, seed, t_attach=0.75, seconds=1.6, controller="cpic"):
+    """Realistic plant held at the ready pose, payload attached at t_attach, RME streaming in the loop.
+    Returns (first Estimate after the attach or None, ms from the attach to the compensation being applied)."""
+    from rme import RME
+    rng = np.random.default_rng(seed)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    est = RME(plant.robot, rng=np.random.default_rng(seed + 1))
+    ctrl = make_controller(plant.robot, Q_READY, controller)
+    plant.schedule_payload(t_attach, theta[0], theta[1:])
+    s = plant.reset(Q_READY)
+    applied_at = None
+    for _ in range(int(seconds / plant.dt)):
+        comp = est.update(s.q, s.dq, s.tau_ext)
+        if applied_at is None and s.t > t_attach and np.any(comp):
+            applied_at = s.t
+        s = plant.step(ctrl(s) + comp)
+    first = next((e for e in est.history if e.t > t_attach), None)
+    latency = np.nan if applied_at is None else (applied_at - t_attach) * 1e3
+    return first, latency
+
+
+def make_controller(robot, q0, kind="hold"):
+    """sample -> tau: "hold" (joint PD + gravity, sim.JointHold) or "cpic" (the paper's CPIC, cpic.py)."""
+    if kind == "cpic":
+        from cpic import CPIC, Attractor
+        c = CPIC(robot, Attractor(*robot.ee_pose(q0)))
+        return lambda s: c.step(s.q, s.dq)[0]
+    return JointHold(robot, q0)
+
+
+def tables(n_datasets=100, trials=10, seed=0, log=print):
+    """Tables 1, 4 and 5 and the two latencies, as one dict (the JSON of `python sim.py bench --json`)."""
+    from rme import RME, RMESettings
+    t0 = time.perf_counter()
+    data = datasets(n_datasets, seed=10_000 + seed)
+    log(f"simulated {n_datasets} datasets in {time.perf_counter() - t0:.0f} s")
+    nn, zero = RME(rng=np.random.default_rng(seed)), RME(settings=RMESettings(use_network=False),
+                                                        rng=np.random.default_rng(seed))
+    t1_nn, secs = mse_table(nn, data, 200)
+    t1_zero, _ = mse_table(zero, data, 200)
+    t4 = {str(L): mse_table(nn, data, L)[0] for L in (50, 100, 200, 300)}
+    log(f"tables 1 and 4 done at {time.perf_counter() - t0:.0f} s")
+    t5, latencies = [], []
+    for i, theta in enumerate(TABLE5):
+        means = []
+        for k in range(trials):
+            e, ms = closed_loop_trial(np.array(theta), seed=1000 * (i + 1) + k + seed)
+            latencies.append(ms)
+            if e is not None:
+                means.append(e.mean)
+        means = np.array(means) if means else np.full((1, 4), np.nan)
+        t5.append({"applied": list(theta), "mean": means.mean(0).tolist(), "std": means.std(0).tolist(),
+                   "detected": len(means) if np.isfinite(means).all() else 0, "trials": trials})
+        log(f"table 5 payload {theta}: mean {np.round(means.mean(0), 3)}")
+    return {"table1": {"nn": t1_nn, "zero": t1_zero}, "table4": t4, "table5": t5,
+            "estimate_ms_median": float(np.median(secs) * 1e3),
+            "attach_to_compensation_ms_median": float(np.nanmedian(latencies)),
+            "attach_to_compensation_ms_all": [float(x) for x in latencies],
+            "settings": {"datasets": n_datasets, "trials": trials, "seed": seed, "preset": "realistic"}}
+
+
+def print_tables(res):
+    fmt = lambda v: "  ".join(f"{x * 1e3:7.3f}" for x in v)
+    print("MSE x 1e-3        m [kg^2]  rx [m^2]  ry [m^2]  rz [m^2]      paper")
+    for k in ("nn", "zero"):
+        print(f"Table 1 {k:>5}:   {fmt(res['table1'][k])}     {fmt(PAPER['table1'][k])}")
+    for k, v in res["table4"].items():
+        print(f"Table 4 {k:>3} ms:  {fmt(v)}     {fmt(PAPER['table4'][k])}")
+    print("Table 5: applied (m, rx, ry, rz) -> mean +- std of the first estimate after the attach")
+    for row in res["table5"]:
+        ms = "  ".join(f"{m:6.3f}+-{s:5.3f}" for m, s in zip(row["mean"], row["std"]))
+        print(f"  {row['applied']} -> {ms}  ({row['detected']}/{row['trials']} detected)")
+    print(f"estimate (network + VI) median: {res['estimate_ms_median']:.2f} ms (paper: 226 ms)")
+    print(f"load change -> compensation applied, median: {res['attach_to_compensation_ms_median']:.0f} ms "
+          f"(paper: about 400 ms)")
+
+
+def bench(args):
+    res = tables(seed=args.seed, log=(lambda *a: None) if args.json else print)
+    print(json.dumps(res) if args.json else "", end="\n" if args.json else "")
+    if not args.json:
+        print_tables(res)
+    return res
+
+
+def timing(args=None):
+    """Median microseconds of every hot path (README's timing table): model terms, plant step, and whatever of
+    the controller, network, VI and full estimate is importable."""
+    robot, rng = Robot.panda(), np.random.default_rng(0)
+    q, dq = Q_READY + rng.normal(0, 0.2, N), rng.normal(0, 0.5, N)
+    Qw = Q_READY + rng.normal(0, 0.2, (200, N))
+    theta = np.array([0.9, 0.05, -0.03, 0.13])
+    rows = {
+        "jacobian": median_us(lambda: robot.jacobian(q)),
+        "mass_matrix": median_us(lambda: robot.mass_matrix(q)),
+        "bias": median_us(lambda: robot.bias(q, dq)),
+        "payload_regressor": median_us(lambda: robot.payload_regressor(q)),
+        "payload_regressor (200-sample window)": median_us(lambda: robot.payload_regressor(Qw), 300),
+        "terms (J, M, bias in one pass)": median_us(lambda: robot.terms(q, dq)),
+        "terms + payload_torque (one control step's model)":
+            median_us(lambda: (robot.terms(q, dq), robot.payload_torque(q, theta))),
+    }
+    for preset in ("ideal", "realistic"):
+        r2 = np.random.default_rng(1)
+        plant = Plant(PlantConfig.realistic(r2) if preset == "realistic" else PlantConfig.ideal(), rng=r2)
+        hold = JointHold(plant.robot, Q_READY)
+        s = [plant.reset(Q_READY)]
+        tau = hold(s[0])                               # a fixed command: the arm stays close to its pose
+        rows[f"plant step ({preset})"] = median_us(lambda: plant.step(tau), 3000)
+    for name, fn in _module_timings():
+        rows[name] = fn
+    for k, v in rows.items():
+        print(f"{k:58s} {v:9.1f} us")
+    return rows
+
+
+def _module_timings():
+    """(name, median us) of the other modules' benchmark() functions, skipping any that is missing."""
+    out = []
+    for mod in ("cpic", "nn_numpy", "vi"):
+        try:
+            res = __import__(mod).benchmark()
+        except Exception as err:                      # a missing module or weights: say so, go on
+            out.append((f"{mod}: not available ({type(err).__name__}: {err})", float("nan")))
+            continue
+        out += [(f"{mod}: {k}", float(v)) for k, v in res.items() if k.endswith("_us") or k.endswith("us")]
+    return out

@@ -1,0 +1,178 @@
+"""Rapid Mismatch Estimation, the pipeline (Sec. 4, Fig. 2): detector -> 200 ms window -> network prior ->
+variational inference -> compensation tau_comp = -J^T [F_hat; r_hat x F_hat] (Eq. 6). `python rme.py diagnose LOG`
+compares the nominal model with a robot log and finds the missing physical effect (diagnose.py)."""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import vi
+from detector import Detector, DetectorSettings, pseudo_force
+from dynamics import Robot, as_states
+
+WEIGHTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights.npz")
+
+
+@dataclass(frozen=True)
+class RMESettings:
+    window: int = 200              # samples of the estimation window: 200 ms at 1 kHz (Sec. 4, App. E)
+    reference: int = 30            # samples at the start of the detector's buffer whose mean tau_ext is the
+                                   #   reference the window is referred to (ours: removes the pose-dependent bias);
+                                   #   the detector checks that samples 1-30 precede the change (detector.py)
+    rate: float = 1000.0           # Hz, the control loop (Franka's 1 kHz)
+    use_network: bool = True       # prior mean from the network (False: zero prior mean, Table 1's ablation)
+    asynchronous: bool = True      # ours: compensation starts once the estimate's own wall time has passed, as if
+                                   #   the estimate ran beside the loop (False: applied on the detection sample)
+    max_mass: float = 3.0          # kg, Panda's rated payload: the compensation never assumes more
+    min_explained: float = 0.9     # ours: a detection is applied only if the new estimate explains at least this
+                                   #   share of the torque change in its window; a change of the pose-dependent bias
+                                   #   after a large move (not a load) explains 0.6-0.7, real loads 0.97-1.0 (sim.py
+                                   #   pick-place and basket, realistic preset)
+    vi: vi.VISettings = field(default_factory=vi.VISettings)
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
+
+
+@dataclass
+class Estimate:
+    """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""
+    mean: np.ndarray               # (4,)
+    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (honest intervals;
+                                   #   the mean-field sigma under-covers the correlated m-r directions, vi.py)
+    cov: np.ndarray                # (4, 4) that covariance
+    prior: np.ndarray              # (4,) the prior mean (network output, or zeros)
+    seconds: float                 # wall time of network + VI
+    iterations: int
+    converged: bool
+    t: float = float("nan")        # stream time of the detection (update only)
+    explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
+    accepted: bool = True            # False: the change did not look like a payload and was not compensated
+
+
+class RME:
+    """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
+    use, returning the compensation torque (7,) to add to the controller's torque."""
+
+    def __init__(self, robot: Robot | None = None, weights: str | None = WEIGHTS, settings: RMESettings = RMESettings(),
+                 rng: np.random.Generator | None = None, correction=None):
+        self.robot = Robot.panda() if robot is None else robot
+        self.settings, self.correction = settings, correction
+        self.rng = np.random.default_rng(0) if rng is None else rng
+        self.net = self._load_network(weights) if settings.use_network else None
+        self.detector = Detector(settings.detector)
+        n, keep = self.robot.n, settings.detector.window
+        if settings.window > keep:
+            raise ValueError(f"settings.window: expected at most the detector's window {keep}, found {settings.window}")
+        self._q, self._tau = np.zeros((keep, n)), np.zeros((keep, n))    # ring buffers of the last `keep` samples
+        self._k = 0                                    # samples seen
+        self.theta = np.zeros(4)                       # the estimate being compensated
+        self._pending = None                           # (sample index when it applies, Estimate)
+        self.history: list[Estimate] = []
+        nu_ok = self.robot.model.nu == n
+        self._limit = self.robot.model.actuator_ctrlrange[:, 1].copy() if nu_ok else np.full(n, np.inf)
+
+    def _load_network(self, weights):
+        if weights is None:
+            return None
+        try:
+            from nn_numpy import MismatchNet
+            return MismatchNet.load(weights)
+        except (OSError, ValueError, KeyError) as err:
+            print(f"rme: cannot use the network weights {weights!r} ({err}); using a zero prior mean", file=sys.stderr)
+            return None
+
+    # --- one window ----------------------------------------------------------------------------
+    def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
+        """Posterior of theta from a window q, tau_ext (T, n) (paper sign), T about 200 at 1 kHz.
+        baseline (n,): the tau_ext seen before the change, subtracted first (default: none)."""
+        q_in, tau_in = q, tau_ext
+        q, qb = as_states("q", q, self.robot.n)
+        tau, tb = as_states("tau_ext", tau_ext, self.robot.n)
+        if not (qb and tb) or q.shape != tau.shape:
+            raise ValueError(f"q, tau_ext: expected two windows of the same shape (T, {self.robot.n}), found "
+                             f"{np.shape(q_in)} and {np.shape(tau_in)}")
+        if q.shape[0] < 20:
+            raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
+        if baseline is not None:
+            tau = tau - as_states("baseline", baseline, self.robot.n, allow_window=False)[0]
+        if self.correction is not None:
+            tau = tau - self.correction.correction(q, dq if dq is not None else np.zeros_like(q))
+        start = time.perf_counter()
+        prior = self.net.predict_window(self.robot, q, tau) if self.net is not None else np.zeros(4)
+        post = vi.fit(self.robot.payload_regressor(q), tau, prior, self.settings.vi, self.rng)
+        seconds = time.perf_counter() - start
+        return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), seconds, post.iterations,
+                        post.converged)
+
+    # --- streaming -----------------------------------------------------------------------------
+    def update(self, q, dq, tau_ext) -> np.ndarray:
+        """Feed one 1 kHz sample (paper sign tau_ext); returns the compensation torque (n,) = -tau_mm(q, theta_hat).
+        Never NaN, never beyond the torque limits; re-estimates at every change the detector finds."""
+        n, keep = self.robot.n, self.settings.detector.window
+        q, _ = as_states("q", q, n, allow_window=False)
+        tau, _ = as_states("tau_ext", tau_ext, n, allow_window=False)
+        q, tau = q[0], tau[0]
+        i = self._k % keep
+        self._q[i], self._tau[i] = q, tau
+        self._k += 1
+        # the detector watches what the current estimate does not explain, r = tau_ext - tau_mm(q, theta_hat):
+        # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
+        J = self.robot.jacobian(q)
+        tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta) if self.theta[0] else np.zeros(n)
+        if self.detector.update(tau - tau_mm, pseudo_force(J, tau - tau_mm)) and self._k >= keep:
+            self._on_detection()
+        if self._pending is not None and self._k >= self._pending[0]:
+            self.theta = _safe_theta(self._pending[1].mean, self.theta, self.settings.max_mass)
+            self._pending = None
+            tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta)
+        return np.clip(-tau_mm, -self._limit, self._limit)
+
+    def _on_detection(self):
+        """Estimate the total payload from the newest window, referred to the torque before the change."""
+        s, keep, k = self.settings, self.settings.detector.window, self._k
+        order = (np.arange(keep) + k) % keep                          # oldest .. newest
+        Q, TAU = self._q[order], self._tau[order]
+        q_ref, tau_ref = Q[:s.reference], TAU[:s.reference]
+        # bias = what the previous estimate does not explain before the change: tau_ref - tau_mm(q_ref, theta_prev)
+        bias = (tau_ref - self.robot.payload_regressor(q_ref) @ _phi(self.theta)).mean(axis=0)
+        Qw, Tw = Q[-s.window:], TAU[-s.window:] - bias
+        e = self.estimate(Qw, Tw)
+        e.t = k / s.rate
+        Y = self.robot.payload_regressor(Qw)
+        before = np.sum((Tw - Y @ _phi(self.theta)) ** 2)          # what the old estimate leaves unexplained
+        e.explained = 1.0 - np.sum((Tw - Y @ _phi(e.mean)) ** 2) / before
+        e.accepted = bool(e.explained >= s.min_explained)
+        self.history.append(e)
+        if e.accepted:
+            delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
+            self._pending = (k + delay, e)
+
+
+def _phi(theta):
+    return np.concatenate([[theta[0]], theta[0] * theta[1:]])
+
+
+def _safe_theta(new, old, max_mass):
+    """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the old one."""
+    new = np.asarray(new, dtype=float)
+    if new.shape != (4,) or not np.all(np.isfinite(new)):
+        return old
+    return np.array([min(max(new[0], 0.0), max_mass), *np.clip(new[1:], -1.0, 1.0)])
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] != "diagnose":
+        print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
+              "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)")
+        return 2
+    import diagnose
+    return diagnose.main(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
