@@ -1,188 +1,15 @@
 """Constrained passive interaction control (CPIC, Sec. 3, Eqs. 6-7; Appendix B, D): DS motion policies, the passive
-impedance law F_c = G_x - D(x)(xdot - f(x)), and the exponential-CBF torque QP solved by a hand-written dual
-active-set (Goldfarb-Idnani) KKT solver, plus the RME compensation hook. `python cpic.py` prints the benchmark."""
+impedance law F_c = G_x - D(x)(xdot - f(x)), the exponential-CBF torque QP (solved by qp.py's dual active-set KKT
+solver) and the RME compensation hook. `python cpic.py` prints the benchmark."""
 from __future__ import annotations
 
 import math
 import time
-import timeit
 from dataclasses import dataclass, field
 
 import numpy as np
 
-
-# --- the QP solver: min 1/2 x^T H x + g^T x  s.t.  A x >= b --------------------------------------------------
-@dataclass(frozen=True)
-class QPInfo:
-    """status: "optimal" | "infeasible" | "max_iterations" | "degenerate" (numerical breakdown);
-    iterations: active-set changes (adds + drops); active: indices of the active constraints (k,);
-    multipliers: lambda (m,) >= 0, zero off the active set; residual: max KKT violation (abs)."""
-    status: str
-    iterations: int
-    active: np.ndarray
-    multipliers: np.ndarray
-    residual: float
-
-
-def solve_qp(H, g, A, b, active=None, max_iterations=None):
-    """Strictly convex QP min 1/2 x^T H x + g^T x s.t. A x >= b; H (n, n) SPD, g (n,), A (m, n), b (m,).
-
-    active: indices believed active (warm start, e.g. the previous info.active); inconsistent ones (linearly
-    dependent, negative multiplier) are dropped. Returns (x (n,), QPInfo); never raises after validation.
-    """
-    H, g, A, b = (np.asarray(v, dtype=float) for v in (H, g, A, b))
-    n = g.shape[0] if g.ndim == 1 and g.shape[0] > 0 else 0
-    m = b.shape[0] if b.ndim == 1 else -1
-    for name, v, shape, what in (("g", g, (n,), "(n,), n >= 1"), ("H", H, (n, n), "(n, n)"),
-                                 ("b", b, (m,), "(m,)"), ("A", A, (m, n), "(m, n) = (len(b), len(g))")):
-        if v.shape != shape or n == 0:
-            raise ValueError(f"{name}: expected shape {what}, found {v.shape}")
-        if not np.isfinite(v).all():
-            raise ValueError(f"{name}: expected finite values, found {v[~np.isfinite(v)][0]}")
-    if np.abs(H - H.T).max() > 1e-10 * max(1.0, H.diagonal().max()):       # |H_ij| <= max H_ii if SPD
-        raise ValueError(f"H: expected a symmetric matrix, found max |H - H^T| = {np.abs(H - H.T).max():.3g}")
-    try:
-        L = np.linalg.cholesky(H)
-    except np.linalg.LinAlgError:
-        raise ValueError(f"H: expected positive definite, found eigenvalues {np.linalg.eigvalsh(H)}") from None
-    W = np.zeros(0, dtype=int) if active is None else np.asarray(active).reshape(-1)
-    if W.size and (W.dtype.kind not in "iu" or W.min() < 0 or W.max() >= b.shape[0]):
-        raise ValueError(f"active: expected integer indices in [0, {b.shape[0]}), found {W}")
-    if max_iterations is None:
-        max_iterations = 5 * (n + m) + 10
-    x, status, it, W, mult = dual_active_set(np.linalg.inv(L), g, A, b, W, int(max_iterations))
-    with np.errstate(over="ignore", invalid="ignore"):  # absolute KKT residual; inf on overflow
-        s = A @ x - b
-        if W:
-            residual = max(np.abs(H @ x + g - mult @ A).max(), -s.min(), np.abs(mult * s).max())
-        else:
-            residual = max(np.abs(H @ x + g).max(), -s.min(initial=0.0))
-    return x, QPInfo(status, it, np.array(W, dtype=int), mult, float(residual))
-
-
-def dual_active_set(B, g, A, b, active, max_iterations, tol=1e-11):
-    """Goldfarb and Idnani's dual method (Math. Prog. 27, 1983); unchecked inputs, for the loop. B (n, n) is any
-    factor with B^T B = H^-1 (B = L^-1 for H = L L^T), so that H itself is never needed.
-
-    In x = B^T y the QP is min 1/2 |y + c|^2 s.t. N y >= d (c = B g, rows of N = A B^T scaled to unit
-    length), so every KKT solve is a k x k normal-equation solve with k <= n active constraints. Starting from
-    any dual-feasible active set (the warm start after dropping negative multipliers), each iteration adds
-    the most violated constraint, taking partial steps that drop active ones whose multiplier reaches zero.
-    Returns x (n,), status, iterations (adds + drops), active indices (list), multipliers (m,).
-    """
-    n, m = B.shape[0], b.shape[0]
-    c = B @ g                                         # (n,)
-    if not len(active):                               # fast path: the unconstrained minimiser -H^-1 g is feasible
-        x = -(c @ B)
-        if not m or (A @ x - b).min() >= -tol * (1.0 + np.abs(b).max() + np.abs(A).max() * np.abs(x).max()):
-            return x, "optimal", 0, [], np.zeros(m)
-    N = A @ B.T                                       # (m, n)
-    norms = np.sqrt(np.einsum("ij,ij->i", N, N))
-    usable = norms > 1e-12 * (1.0 + norms.max())
-    scale = 1.0 / np.where(usable, norms, 1.0)
-    N, d = N * scale[:, None], b * scale              # unit rows; multipliers map back by * scale
-    W, it, status = [], 0, "optimal"
-    if not usable.all():                              # a zero row reads 0 >= b_i
-        d = np.where(usable, d, -1.0)
-        if (b[~usable] > 0.0).any():
-            return -(c @ B), "infeasible", 0, [], np.zeros(m)
-    tol = tol * (1.0 + np.abs(c).max() + np.abs(d).max())
-    if len(active):
-        W, it = _independent(N, [i for i in dict.fromkeys(int(i) for i in active) if usable[i]], n)
-    y, lam = -c, np.zeros(0)
-    try:
-        W, lam, y, drops = _dual_feasible_start(N, d, c, W)
-        it += drops
-        while True:
-            s = N @ y - d
-            s[W] = np.inf
-            p = int(np.argmin(s))
-            if s[p] >= -tol:
-                break
-            status, W, lam, y, steps = _add_constraint(N, d, y, W, lam, p, max_iterations - it)
-            it += steps
-            if status != "optimal":
-                break
-        if status == "optimal" and it and W:           # polish: the exact minimiser on the final active set
-            lam_p, y_p = _eqp(N, d, c, W)
-            if lam_p.min() >= -tol and (N @ y_p - d).min() >= -tol:
-                lam, y = lam_p, y_p
-    except np.linalg.LinAlgError:
-        status, y, W, lam = "degenerate", -c, [], np.zeros(0)
-    if not (np.isfinite(y).all() and np.isfinite(lam).all()):
-        status, y, W, lam = "degenerate", -c, [], np.zeros(0)
-    mult = np.zeros(m)
-    if W:
-        mult[W] = np.maximum(lam, 0.0) * scale[W]
-    return B.T @ y, status, it, W, mult
-
-
-def _independent(N, W, n):
-    """Greedy Gram-Schmidt: keep the indices whose rows are independent of the ones kept before (k <= n)."""
-    if len(W) <= 1:
-        return W, 0                                   # rows are unit length
-    basis, keep = [], []
-    for i in W:
-        v = N[i] - (np.array(basis).T @ (np.array(basis) @ N[i]) if basis else 0.0)
-        nv = np.sqrt(v @ v)
-        if nv > 1e-8 and len(keep) < n:
-            basis.append(v / nv)
-            keep.append(i)
-    return keep, len(W) - len(keep)
-
-
-def _eqp(N, d, c, W):
-    """Minimiser of 1/2 |y + c|^2 on N_W y = d_W: y = -c + N_W^T lam, (N_W N_W^T) lam = d_W + N_W c."""
-    if len(W) == 1:                                   # unit row: N_W N_W^T = 1
-        nw = N[W[0]]
-        lam = d[W[0]] + nw @ c
-        return np.array([lam]), lam * nw - c
-    NW = N[W]
-    lam = np.linalg.solve(NW @ NW.T, d[W] + NW @ c)
-    return lam, NW.T @ lam - c
-
-
-def _dual_feasible_start(N, d, c, W):
-    """Drop the most negative multiplier until the warm-start set is dual feasible (lambda >= 0)."""
-    drops = 0
-    while W:
-        lam, y = _eqp(N, d, c, W)
-        j = int(np.argmin(lam))
-        if lam[j] >= 0.0:
-            return W, lam, y, drops
-        W, drops = W[:j] + W[j + 1:], drops + 1
-    return [], np.zeros(0), -c, drops
-
-
-def _add_constraint(N, d, y, W, lam, p, budget):
-    """Add violated constraint p (Goldfarb-Idnani step 2): primal step along z, dual step -r, partial steps
-    drop the blocking active constraint. Returns (status, W, lam, y, iterations)."""
-    n_p, lam_p, steps = N[p], 0.0, 0
-    while steps < budget:
-        if W:
-            NW = N[W]                                 # (k, n)
-            r = np.linalg.solve(NW @ NW.T, NW @ n_p)   # n_p = N_W^T r + z, z _|_ rows of N_W
-            z = n_p - NW.T @ r
-        else:
-            r, z = np.zeros(0), n_p
-        zz = z @ z
-        t2 = (d[p] - n_p @ y) / zz if zz > 1e-14 else np.inf      # full step: constraint p becomes active
-        pos = r > 1e-12
-        t1, j = np.inf, -1
-        if pos.any():
-            ratios = np.where(pos, lam / np.where(pos, r, 1.0), np.inf)
-            j = int(np.argmin(ratios))
-            t1 = ratios[j]                            # partial step: multiplier j reaches zero first
-        if t1 == np.inf and t2 == np.inf:
-            return "infeasible", W, lam, y, steps
-        t = min(t1, t2)
-        if zz > 1e-14:
-            y = y + t * z
-        lam, lam_p, steps = lam - t * r, lam_p + t, steps + 1
-        if t2 <= t1:
-            return "optimal", W + [p], np.append(lam, lam_p), y, steps
-        W, lam = W[:j] + W[j + 1:], np.delete(lam, j)
-    return "max_iterations", W, lam, y, steps
+from qp import QPInfo, dual_active_set, solve_qp   # noqa: F401  (re-exported: cpic.solve_qp is the issue's name)
 
 
 # --- motion policies f(x) with their Lyapunov functions V(x) (Sec. 3, Eq. 6) ---------------------------------
@@ -213,7 +40,7 @@ class Attractor:
     p_star: np.ndarray
     R_star: np.ndarray = field(default_factory=lambda: np.eye(3))
     gain_pos: float = 3.0        # 1/s; our choice: stiffness lambda_1 a_p = 450 N/m with lambda_1 = 150
-    gain_rot: float = 8.0        # 1/s; our choice: stiffness 20 N m/rad with lambda_1 = 2.5
+    gain_rot: float = 8.0        # 1/s; our choice: stiffness lambda_1 a_r = 40 N m/rad with lambda_1 = 5
 
     def __call__(self, p, R):
         """-> f (6,), V = (V_pos, V_rot)."""
@@ -284,9 +111,11 @@ def _damp(f, eigenvalues, e):
 class CPICConfig:
     damping_pos: tuple = (150.0, 150.0, 150.0)  # N s/m, D eigenvalues (along f first); the lab's Franka passive-DS
     #                                             value (franka_interactive_controllers: "150 for franka")
-    damping_rot: tuple = (2.5, 2.5, 2.5)        # N m s/rad; the lab uses 5 (same source) on a wrist with rotor
-    #   inertia; the nominal model has none (rotational task inertia down to 0.005 kg m^2), and with the 1 ms
-    #   command delay dt D / I > 1 makes the wrist chatter, so half of it (deviation, see README)
+    damping_rot: tuple = (5.0, 5.0, 5.0)        # N m s/rad; the lab's Franka value (paper_notes.md "Controller").
+    #   Measured on the delay-free plant: the velocity loop dq+ = (I - dt M^-1 K_v) dq (K_v = J^T D J + k_n N, torque
+    #   held over the step) is stable for dt lambda_max(M^-1 K_v) < 2; it is 0.89-1.09 on the ideal plant (no rotor
+    #   inertia, wrist task inertia >= 0.0047 kg m^2), 0.21 on the realistic one; linearised hold: most negative
+    #   eigenvalue -0.09, no chatter (10 would give -1.15). The old 1-step command delay made 5 unstable (|z| 1.05).
     k1: float = 30.0                  # 1/s^2, E-CBF gain on h (lab range k1 = 30..1000, paper_notes.md)
     k2: float = 50.0                  # 1/s, E-CBF gain on dh/dt (lab range k2 = 50..1000)
     tau_max: tuple = (87.0,) * 4 + (12.0,) * 3  # N m, Panda torque limits (panda_facts.md)
@@ -390,13 +219,11 @@ class CPIC:
         """Model terms, policy, F_c, the unconstrained optimum tau_free = J^T F_c + N tau_0 and the QP data
         (H^-1, g, b); H^-1 = None when J J^T or M is singular."""
         robot, c, n = self.robot, self.config, self.robot.n
-        J, M, bias = robot.terms(q, dq)               # validates q and dq
+        J, M, bias, G, p, R = robot.control_terms(q, dq)          # one kinematics pass; validates q and dq
         q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
         comp = _check_torque("compensation", compensation, n)
         if tau_ext is not None:
             bias = bias - _check_torque("tau_ext", tau_ext, n) - comp
-        p, R = robot.ee_pose(q)
-        G = robot.gravity(q)
         f, V = self.policy(p, R)
         try:
             Jp = np.linalg.solve(J @ J.T, J)          # J^+T (6, n)
@@ -466,10 +293,11 @@ def run_closed_loop(plant, ctrl, first, seconds, compensation=None, use_tau_ext=
     return log
 
 
-def benchmark(seconds=0.6, repeats=5):
+def benchmark(seconds=0.6, repeats=7):
     """Median microseconds of solve_qp on the controller's own QPs, recorded in a simulated hold (a 5 cm / 0.3 rad
     pose step that drives wrist joints into their E-CBF constraints, a 0.9 kg payload at 0.2 s, a 42 N push from
-    0.3 s to 0.5 s), split by whether constraints are active, and of one full ctrl.step (model terms + QP)."""
+    0.3 s to 0.5 s), split by whether constraints are active, and of one full ctrl.step (model terms + QP).
+    Every timing key ends in "_us" (the lead's table in bench.py collects those)."""
     from sim import Plant, PlantConfig, Q_READY       # the plant is only needed here
     plant = Plant(PlantConfig.ideal())
     robot, s = plant.robot, plant.reset(Q_READY)
@@ -484,29 +312,35 @@ def benchmark(seconds=0.6, repeats=5):
         states.append((s.q, s.dq))
         s = plant.step(ctrl.step(s.q, s.dq)[0])
 
-    def best_us(fn):
-        return 1e6 * min(timeit.repeat(fn, number=1, repeat=repeats))
+    def best_us(calls, before=None):
+        """Per call, the fastest of `repeats` whole passes over all calls (a burst of load on the shared machine
+        hits one pass, not every repeat of a few neighbouring calls); before() runs ahead of each pass."""
+        best = np.full(len(calls), np.inf)
+        for _ in range(repeats):
+            if before is not None:
+                before()
+            for k, call in enumerate(calls):
+                t0 = time.perf_counter()
+                call()
+                best[k] = min(best[k], 1e6 * (time.perf_counter() - t0))
+        return best
 
-    qp_us = np.array([best_us(lambda P=P: solve_qp(*P)) for P in problems])
+    qp_us = best_us([lambda P=P: solve_qp(*P) for P in problems])
     active = np.array([len(solve_qp(*P)[1].active) > 0 for P in problems])
     inverses = [np.linalg.inv(P[0]) for P in problems]             # the loop has H^-1 in closed form
-    loop_us = np.array([best_us(lambda P=P, Hi=Hi: dual_active_set(np.linalg.cholesky(Hi).T, *P[1:], 100))
-                        for P, Hi in zip(problems, inverses)])
-    step_us = np.full(len(states), np.inf)
-    for _ in range(repeats):                          # whole passes in order: the warm start the loop sees
-        ctrl.reset()
-        for k, (q, dq) in enumerate(states):
-            t0 = time.perf_counter()
-            ctrl.step(q, dq)
-            step_us[k] = min(step_us[k], 1e6 * (time.perf_counter() - t0))
-    model_us = [best_us(lambda q=q, dq=dq: (robot.terms(q, dq), robot.ee_pose(q), robot.gravity(q)))
-                for q, dq in states[::10]]
+    loop_us = best_us([lambda P=P, Hi=Hi, W=P[4].tolist():
+                       dual_active_set(np.linalg.cholesky(Hi).T, P[1], P[2], P[3], W, 100)
+                       for P, Hi in zip(problems, inverses)])
+    # steps in order from a reset: the warm start the loop sees
+    step_us = best_us([lambda q=q, dq=dq: ctrl.step(q, dq) for q, dq in states], before=ctrl.reset)
+    model_us = best_us([lambda q=q, dq=dq: robot.control_terms(q, dq) for q, dq in states[::10]])
     return {"problems": len(problems), "fraction_with_active_constraints": float(active.mean()),
             "solve_qp_median_us": float(np.median(qp_us)),
-            "solve_qp_median_us_none_active": float(np.median(qp_us[~active])),
-            "solve_qp_median_us_some_active": float(np.median(qp_us[active])),
-            "in_loop_qp_median_us_some_active": float(np.median(loop_us[active])),   # Cholesky + solver
-            "step_median_us": float(np.median(step_us)), "model_terms_median_us": float(np.median(model_us))}
+            "solve_qp_none_active_median_us": float(np.median(qp_us[~active])),
+            "solve_qp_some_active_median_us": float(np.median(qp_us[active])),
+            "in_loop_qp_some_active_median_us": float(np.median(loop_us[active])),   # Cholesky + solver
+            "step_median_us": float(np.median(step_us)),
+            "model_terms_median_us": float(np.median(model_us))}                    # robot.control_terms
 
 
 if __name__ == "__main__":

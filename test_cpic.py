@@ -1,7 +1,5 @@
-"""Tests of cpic.py: the active-set QP solver against closed-form optima and an exhaustive active-set reference,
-the policies and the impedance law against closed forms, and CPIC in closed loop on the MuJoCo plant."""
-import itertools
-
+"""Tests of cpic.py: the policies and the impedance law against closed forms, and CPIC in closed loop on the MuJoCo
+plant (the QP solver's own tests are in test_qp.py)."""
 import mujoco
 import numpy as np
 import pytest
@@ -12,180 +10,6 @@ from sim import Plant, PlantConfig, Q_READY
 
 TAU_MAX = np.array([87.0] * 4 + [12.0] * 3)
 THETA = np.array([0.9, 0.05, -0.03, 0.13])           # a Table 5 payload
-
-
-# --- QP solver -----------------------------------------------------------------------------------------------
-def random_spd(rng, n=7):
-    B = rng.normal(size=(n, n))
-    return B @ B.T + 0.1 * np.eye(n)
-
-
-def constructed_qp(rng, n=7):
-    """A QP whose optimum x* is known by construction: k active constraints with multipliers > 0 (sometimes one
-    weakly active: multiplier 0, slack 0), the rest strictly inactive; H x* + g = A^T lambda."""
-    m = int(rng.integers(n, 29))
-    k = int(rng.integers(0, n + 1))
-    H, A, x_star = random_spd(rng, n), rng.normal(size=(m, n)), rng.normal(size=n)
-    lam = np.zeros(m)
-    lam[:k] = rng.uniform(0.1, 10.0, k)
-    slack = np.where(np.arange(m) < k, 0.0, rng.uniform(0.1, 2.0, m))
-    if k < n and rng.random() < 0.2:
-        slack[k] = 0.0                                # weakly active: degenerate but x* unchanged
-    perm = rng.permutation(m)
-    A, lam, slack = A[perm], lam[perm], slack[perm]
-    b = A @ x_star - slack
-    g = A.T @ lam - H @ x_star
-    return H, g, A, b, x_star, k
-
-
-def kkt_violation(H, g, A, b, x, lam):
-    s = A @ x - b
-    return max(np.abs(H @ x + g - A.T @ lam).max(), max(0.0, -s.min()), max(0.0, -lam.min()),
-               np.abs(lam * s).max())
-
-
-def objective(H, g, x):
-    return 0.5 * x @ H @ x + g @ x
-
-
-def test_qp_matches_closed_form_optimum_on_200_constructed_problems():
-    rng = np.random.default_rng(0)
-    active_sizes = []
-    for _ in range(200):
-        H, g, A, b, x_star, k = constructed_qp(rng)
-        x, info = solve_qp(H, g, A, b)
-        assert info.status == "optimal"
-        f_ref = objective(H, g, x_star)
-        assert abs(objective(H, g, x) - f_ref) <= 1e-8 * max(1.0, abs(f_ref))
-        assert np.abs(x - x_star).max() <= 1e-8 * max(1.0, np.abs(x_star).max())
-        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
-        assert info.residual <= 1e-8
-        active_sizes.append(k)
-    assert max(active_sizes) == 7 and np.mean(np.array(active_sizes) >= 5) > 0.2   # many-active cases are in
-
-
-def enumeration_reference(H, g, A, b, tol=1e-9):
-    """Exhaustive search over active sets (at most n of them): the KKT point with lambda >= 0 that is feasible."""
-    n, m = len(g), len(b)
-    for k in range(min(n, m) + 1):
-        subsets = list(itertools.combinations(range(m), k))
-        S = np.array(subsets, dtype=int).reshape(len(subsets), k)
-        K = np.zeros((len(S), n + k, n + k))
-        K[:, :n, :n] = H
-        K[:, :n, n:] = -A[S].transpose(0, 2, 1)
-        K[:, n:, :n] = A[S]
-        rhs = np.zeros((len(S), n + k))
-        rhs[:, :n], rhs[:, n:] = -g, b[S]
-        ok = np.abs(np.linalg.det(K)) > 1e-12
-        sol = np.linalg.solve(K[ok], rhs[ok][..., None])[..., 0]
-        x, lam = sol[:, :n], sol[:, n:]
-        good = (lam.min(axis=1, initial=0.0) >= -tol) & ((x @ A.T - b).min(axis=1) >= -tol)
-        if good.any():
-            return x[np.argmax(good)]
-    raise AssertionError("no KKT point found")
-
-
-def test_qp_matches_active_set_enumeration_on_random_problems():
-    rng = np.random.default_rng(1)
-    for _ in range(60):
-        m = int(rng.integers(1, 13))
-        H, A, x0 = random_spd(rng), rng.normal(size=(m, 7)), rng.normal(size=7)
-        b = A @ x0 - np.abs(rng.normal(size=m)) * rng.integers(0, 2, size=m)     # feasible (x0), some tight
-        g = 5.0 * rng.normal(size=7)
-        x, info = solve_qp(H, g, A, b)
-        x_ref = enumeration_reference(H, g, A, b)
-        f_ref = objective(H, g, x_ref)
-        assert info.status == "optimal"
-        assert abs(objective(H, g, x) - f_ref) <= 1e-8 * max(1.0, abs(f_ref))
-        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
-
-
-def test_qp_satisfies_kkt_on_random_28_constraint_problems():
-    rng = np.random.default_rng(2)
-    for _ in range(100):
-        H, A, x0 = random_spd(rng), rng.normal(size=(28, 7)), rng.normal(size=7)
-        b = A @ x0 - np.abs(rng.normal(size=28)) * rng.integers(0, 2, size=28)
-        g = 5.0 * rng.normal(size=7)
-        x, info = solve_qp(H, g, A, b)
-        assert info.status == "optimal"
-        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
-
-
-def test_qp_handles_dependent_and_overdetermined_active_constraints():
-    """Degenerate optima: an active row duplicated (scaled), active rows' combinations weakly active, or more
-    than n constraints through x*; from a cold start and from a random (mostly wrong) warm start."""
-    rng = np.random.default_rng(10)
-    for t in range(90):
-        n, m, k = 7, int(rng.integers(11, 29)), int(rng.integers(1, 8))
-        H, A, x_star = random_spd(rng), rng.normal(size=(m, 7)), rng.normal(size=7)
-        lam = np.where(np.arange(m) < k, rng.uniform(0.1, 5.0, m), 0.0)
-        slack = np.where(np.arange(m) < k, 0.0, rng.uniform(0.1, 2.0, m))
-        if t % 3 == 0:
-            A[k] = A[0] * rng.uniform(0.5, 2.0)
-        elif t % 3 == 1:
-            A[k:k + 2] = rng.normal(size=(2, k)) @ A[:k]
-        slack[k:k + 1 + t % 3] = 0.0
-        b, g = A @ x_star - slack, A.T @ lam - H @ x_star
-        for active in (None, rng.permutation(m)[:9]):
-            x, info = solve_qp(H, g, A, b, active=active)
-            assert info.status == "optimal" and np.abs(x - x_star).max() <= 1e-8 * max(1.0, np.abs(x_star).max())
-            assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
-
-
-def test_qp_warm_start_gives_same_answer_in_fewer_iterations():
-    rng = np.random.default_rng(3)
-    for _ in range(50):
-        H, g, A, b, x_star, k = constructed_qp(rng)
-        x_cold, cold = solve_qp(H, g, A, b)
-        x_warm, warm = solve_qp(H, g, A, b, active=cold.active)
-        assert np.abs(x_warm - x_cold).max() <= 1e-10 * max(1.0, np.abs(x_cold).max())
-        assert warm.iterations == 0 and (cold.iterations >= len(cold.active))
-        if len(cold.active):
-            assert warm.iterations < cold.iterations
-        # a wrong warm start (extra inactive constraints, shuffled) still ends at the optimum
-        wrong = rng.permutation(np.concatenate([cold.active, rng.integers(0, len(b), 3)]))
-        x_wrong, info = solve_qp(H, g, A, b, active=wrong)
-        assert info.status == "optimal" and np.abs(x_wrong - x_star).max() <= 1e-8 * max(1.0, np.abs(x_star).max())
-
-
-def test_qp_reports_infeasible_without_raising():
-    H, g = np.eye(2), np.zeros(2)
-    cases = [(np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([1.0, 0.0])),       # x1 >= 1 and x1 <= 0
-             (np.array([[0.0, 0.0]]), np.array([1.0])),                          # 0 >= 1
-             (np.array([[1.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]), np.array([3.0, -1.0, -1.0]))]
-    for A, b in cases:
-        x, info = solve_qp(H, g, A, b)
-        assert info.status == "infeasible" and np.isfinite(x).all()
-
-
-def test_qp_infeasibility_verdict_matches_scipy_linprog():
-    from scipy.optimize import linprog
-    rng = np.random.default_rng(12)
-    verdicts = []
-    for _ in range(200):
-        n, m = int(rng.integers(1, 8)), int(rng.integers(1, 29))
-        H, g = random_spd(rng, n), rng.normal(size=n)
-        A = rng.normal(size=(m, n)) * 10.0 ** rng.uniform(-2, 2, (m, 1))
-        if m > 2 and rng.random() < 0.3:
-            A[1] = -A[0] * rng.uniform(0.5, 2.0)               # opposite half-spaces
-        b = rng.normal(size=m) * 10.0 ** rng.uniform(-1, 1)
-        x, info = solve_qp(H, g, A, b, active=rng.integers(0, m, size=int(rng.integers(0, m + 1))))
-        feasible = linprog(np.zeros(n), A_ub=-A, b_ub=-b, bounds=[(None, None)] * n, method="highs").status == 0
-        assert info.status == ("optimal" if feasible else "infeasible") and np.isfinite(x).all()
-        verdicts.append(feasible)
-    assert 0.2 < np.mean(verdicts) < 0.8                                  # both verdicts are exercised
-
-
-def test_qp_rejects_bad_input_with_named_value_error():
-    H, g, A, b = np.eye(3), np.zeros(3), np.ones((2, 3)), np.zeros(2)
-    bad = [((np.eye(2), g, A, b), "H"), ((H, g, np.ones((2, 4)), b), "A"), ((H, g, A, np.zeros((2, 1))), "b"),
-           ((H, np.array([0.0, np.nan, 0.0]), A, b), "g"), ((np.diag([1.0, -1.0, 1.0]), g, A, b), "H"),
-           ((H + np.triu(np.ones((3, 3)), 1), g, A, b), "H"), ((np.zeros((3, 3)), g, A, b), "H")]
-    for args, name in bad:
-        with pytest.raises(ValueError, match=f"^{name}:"):
-            solve_qp(*args)
-    with pytest.raises(ValueError, match="^active:"):
-        solve_qp(H, g, A, b, active=[5])
 
 
 # --- policies and the impedance law --------------------------------------------------------------------------
@@ -279,9 +103,11 @@ def test_unconstrained_qp_torque_equals_JT_Fc_plus_null_space_term(robot):
     """Appendix D: with no constraint active tau = J^T F_c; the 7-DoF arm adds N tau_0 in the null space of J."""
     rng = np.random.default_rng(9)
     p0, R0 = robot.ee_pose(Q_READY)
-    config = CPICConfig(damping_pos=(100.0, 150.0, 150.0))
+    config = CPICConfig(damping_pos=(100.0, 150.0, 150.0), damping_rot=(5.0, 5.0, 5.0))
     ctrl = CPIC(robot, Attractor(p0 + np.array([0.02, -0.01, 0.03]), rot([1, 0, 0], 0.01) @ R0), config)
-    q, dq = Q_READY + 0.01 * rng.normal(size=7), 0.01 * rng.normal(size=7)
+    # a state near the attractor: the light nominal wrist (joint 7, ~0.005 kg m^2) turns a larger velocity error
+    # into more than the E-CBF's k1 h ~ 110 rad/s^2 and would make a constraint active
+    q, dq = Q_READY + 0.003 * rng.normal(size=7), 0.01 * rng.normal(size=7)
     tau, info = ctrl.step(q, dq)
     assert len(info.active) == 0 and not info.fallback
     J, G = robot.jacobian(q), robot.gravity(q)
@@ -293,7 +119,7 @@ def test_unconstrained_qp_torque_equals_JT_Fc_plus_null_space_term(robot):
     u = f[:3] / np.linalg.norm(f[:3])
     D = np.zeros((6, 6))
     D[:3, :3] = 150.0 * np.eye(3) - 50.0 * np.outer(u, u)
-    D[3:, 3:] = 2.5 * np.eye(3)
+    D[3:, 3:] = 5.0 * np.eye(3)
     F_c = np.linalg.pinv(J).T @ G - D @ (J @ dq - f)                     # Eq. 6, G_x = J^+T G
     N = np.eye(7) - np.linalg.pinv(J) @ J
     assert np.allclose(info.F_c, F_c, atol=1e-9)
@@ -435,6 +261,26 @@ def test_limit_cycle_is_tracked_in_closed_loop(robot):
     phase = np.unwrap(np.arctan2(e[late, 2], e[late, 1]))
     rate = (phase[-1] - phase[0]) / (log["t"][late][-1] - log["t"][late][0])
     assert rate == pytest.approx(2 * np.pi / 4.0, rel=0.05)
+
+
+def test_default_damping_leaves_no_alternating_mode_in_the_1khz_loop():
+    """The torque is held over each 1 ms step, so damping acts explicitly: too much of it on the light nominal wrist
+    gives an eigenvalue near or below -1 (chatter). Linearise plant + controller at the hold (central differences
+    of one closed-loop step): stable (the eigenvalue 1 is the null-space self-motion, damped but not restored) and
+    every alternating mode decays at least by half per step."""
+    plant = Plant(PlantConfig.ideal())
+    robot = plant.robot
+    ctrl = CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
+
+    def next_state(x):
+        ctrl.reset()
+        s = plant.reset(x[:7], x[7:])
+        s = plant.step(ctrl.step(s.q, s.dq)[0])
+        return np.concatenate([s.q, s.dq])
+    x0, h = np.concatenate([Q_READY, np.zeros(7)]), 1e-6
+    z = np.linalg.eigvals(np.column_stack([(next_state(x0 + h * e) - next_state(x0 - h * e)) / (2 * h)
+                                           for e in np.eye(14)]))
+    assert np.abs(z).max() <= 1.0 + 1e-8 and z.real.min() > -0.5
 
 
 def test_realistic_plant_keeps_torques_finite_and_within_limits():
