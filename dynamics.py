@@ -185,6 +185,15 @@ class Robot:
         self._kin(q[0])
         return self._jac()
 
+    def kinematics(self, q):
+        """(p (3,), R (3, 3), J (6, n)) of the end-effector in one pass; (T, 3), (T, 3, 3), (T, 6, n) for a window."""
+        q, batched = as_states("q", q, self.n)
+        if batched:
+            J, R, p = self._fk_jacobian(q)
+            return p, R, J
+        self._kin(q[0])
+        return self.data.site_xpos[self.site].copy(), self.data.site_xmat[self.site].reshape(3, 3).copy(), self._jac()
+
     def _serial_chain(self):
         """Bodies from the root to the ee site's body, each with its joint (or -1 for a welded body)."""
         m, chain, b = self.model, [], int(self.model.site_bodyid[self.site])
@@ -224,11 +233,11 @@ class Robot:
     def _fk_jacobian(self, q):
         p, R, axes, anchors = self._fk(q)
         if axes is None:
-            return np.stack([self.jacobian(qi) for qi in q]), R
+            return np.stack([self.jacobian(qi) for qi in q]), R, p
         J = np.empty((q.shape[0], 6, self.n))
         J[:, :3] = np.cross(axes, p[:, None, :] - anchors).transpose(0, 2, 1)   # z_i x (p - o_i)
         J[:, 3:] = axes.transpose(0, 2, 1)
-        return J, R
+        return J, R, p
 
     # --- payload terms (paper Eq. 3/5) ---------------------------------------------------------
     def payload_regressor(self, q):
@@ -239,7 +248,7 @@ class Robot:
         """
         q, batched = as_states("q", q, self.n)
         if batched:
-            J, R = self._fk_jacobian(q)
+            J, R, _ = self._fk_jacobian(q)
         else:
             self._kin(q[0])
             J, R = self._jac()[None], self.data.site_xmat[self.site].reshape(1, 3, 3)
