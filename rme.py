@@ -67,7 +67,7 @@ class RME:
         n, keep = self.robot.n, settings.detector.window
         if settings.window > keep:
             raise ValueError(f"settings.window: expected at most the detector's window {keep}, found {settings.window}")
-        self._q, self._tau = np.zeros((keep, n)), np.zeros((keep, n))    # ring buffers of the last `keep` samples
+        self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
         self._k = 0                                    # samples seen
         self.theta = np.zeros(4)                       # the estimate being compensated
         self._pending = None                           # (sample index when it applies, Estimate)
@@ -88,22 +88,32 @@ class RME:
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
         """Posterior of theta from a window q, tau_ext (T, n) (paper sign), T about 200 at 1 kHz.
-        baseline (n,): the tau_ext seen before the change, subtracted first (default: none)."""
+        baseline (n,): the tau_ext seen before the change, subtracted first (default: none).
+        dq (T, n): joint velocities, needed only by a velocity-dependent correction (e.g. fitted friction)."""
+        n = self.robot.n
         q_in, tau_in = q, tau_ext
-        q, qb = as_states("q", q, self.robot.n)
-        tau, tb = as_states("tau_ext", tau_ext, self.robot.n)
+        q, qb = as_states("q", q, n)
+        tau, tb = as_states("tau_ext", tau_ext, n)
         if not (qb and tb) or q.shape != tau.shape:
-            raise ValueError(f"q, tau_ext: expected two windows of the same shape (T, {self.robot.n}), found "
+            raise ValueError(f"q, tau_ext: expected two windows of the same shape (T, {n}), found "
                              f"{np.shape(q_in)} and {np.shape(tau_in)}")
         if q.shape[0] < 20:
             raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
         if baseline is not None:
-            tau = tau - as_states("baseline", baseline, self.robot.n, allow_window=False)[0]
+            tau = tau - as_states("baseline", baseline, n, allow_window=False)[0]
         if self.correction is not None:
-            tau = tau - self.correction.correction(q, dq if dq is not None else np.zeros_like(q))
+            dq = np.zeros_like(q) if dq is None else as_states("dq", dq, n)[0]
+            if dq.shape != q.shape:
+                raise ValueError(f"dq: expected shape {q.shape} like q, found {dq.shape}")
+            tau = tau - self.correction.correction(q, dq)
+        return self._estimate(q, tau)
+
+    def _estimate(self, q, tau, Y=None) -> Estimate:
+        """Network prior and VI on a checked, referred and corrected window; Y = payload_regressor(q) if known."""
         start = time.perf_counter()
+        Y = self.robot.payload_regressor(q) if Y is None else Y
         prior = self.net.predict_window(self.robot, q, tau) if self.net is not None else np.zeros(4)
-        post = vi.fit(self.robot.payload_regressor(q), tau, prior, self.settings.vi, self.rng)
+        post = vi.fit(Y, tau, prior, self.settings.vi, self.rng)
         seconds = time.perf_counter() - start
         return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), seconds, post.iterations,
                         post.converged)
@@ -115,9 +125,10 @@ class RME:
         n, keep = self.robot.n, self.settings.detector.window
         q, _ = as_states("q", q, n, allow_window=False)
         tau, _ = as_states("tau_ext", tau_ext, n, allow_window=False)
-        q, tau = q[0], tau[0]
+        dq, _ = as_states("dq", dq, n, allow_window=False)
+        q, dq, tau = q[0], dq[0], tau[0]
         i = self._k % keep
-        self._q[i], self._tau[i] = q, tau
+        self._q[i], self._dq[i], self._tau[i] = q, dq, tau
         self._k += 1
         # the detector watches what the current estimate does not explain, r = tau_ext - tau_mm(q, theta_hat):
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
@@ -136,13 +147,15 @@ class RME:
         s, keep, k = self.settings, self.settings.detector.window, self._k
         order = (np.arange(keep) + k) % keep                          # oldest .. newest
         Q, TAU = self._q[order], self._tau[order]
+        if self.correction is not None:                               # the effects a better model explains
+            TAU = TAU - self.correction.correction(Q, self._dq[order])
         q_ref, tau_ref = Q[:s.reference], TAU[:s.reference]
         # bias = what the previous estimate does not explain before the change: tau_ref - tau_mm(q_ref, theta_prev)
         bias = (tau_ref - self.robot.payload_regressor(q_ref) @ _phi(self.theta)).mean(axis=0)
         Qw, Tw = Q[-s.window:], TAU[-s.window:] - bias
-        e = self.estimate(Qw, Tw)
-        e.t = k / s.rate
         Y = self.robot.payload_regressor(Qw)
+        e = self._estimate(Qw, Tw, Y)
+        e.t = k / s.rate
         before = np.sum((Tw - Y @ _phi(self.theta)) ** 2)          # what the old estimate leaves unexplained
         e.explained = 1.0 - np.sum((Tw - Y @ _phi(e.mean)) ** 2) / before
         e.accepted = bool(e.explained >= s.min_explained)
