@@ -184,7 +184,7 @@ def main(argv=None):
               "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)")
         return 2
     import diagnose
-    return diagnose.main(argv[1:])
+    return diagnose.main(argv[1:], prog="rme.py diagnose")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,389 @@
+"""Compare a robot model with a log, find the missing physical effect, add it, watch the error fall (issue 6: the
+nominal Eq. 1 model and the effects of effects.py; held-out forward selection). CLI: `python diagnose.py LOG [--add
+EFFECT ...] [--json] [--plot FILE]`, `python diagnose.py --bench`; `python sim.py hidden-effect` for the demo."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dynamics import Robot
+from effect_model import Model
+from effects import Signals
+from heldout import Selection, blocks_of, rank
+from logs import Log, LogConfig, load_log
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    """Regimes and segments in which compare() splits the error."""
+    v_rest: float = 0.02        # rad/s, |dq| below: at rest (20x the 1e-3 rad/s velocity noise of realistic())
+    v_sign: float = 0.1         # rad/s, |dq| above: a clear sign of dq (the 0.05 s filter x 2 rad/s^2 smears 0.1 rad/s)
+    v_fast: float = 0.5         # rad/s, |dq| above: fast (a quarter of the Panda's 2.2-2.6 rad/s limits)
+    a_acc: float = 2.0          # rad/s^2, |ddq| above: accelerating (10-25 % of the 7.5-20 rad/s^2 limits)
+    segment: float = 0.5        # s, length of the time segments ranked by error
+    worst: int = 3              # how many worst segments to report
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """Held-out forward selection (see diagnose)."""
+    block: float = 0.5          # s, interleaved hold-out blocks: >> the 0.05 s filter window, << the motion's periods
+    min_drop: float = 0.10      # an effect must cut the held-out RMS of some joint by >= 10 % ...
+    t_min: float = 3.0          # ... with t >= 3 for the per-block log error ratios (one-sided p < 0.01) ...
+    min_torque: float = 0.01    # Nm, ... explaining >= 0.01 Nm RMS there: half the Panda's 0.02 Nm torque resolution
+    max_add: int = 6            # forward-selection steps at most
+    min_blocks: int = 6         # fewer hold-out blocks: the log is too short to diagnose
+
+
+@dataclass
+class Comparison:
+    """compare() output: per joint (n,) rms [Nm], fit [%] (100 (1 - NRMSE) of tau_J), mean [Nm]; regimes: name ->
+    {rms, mean, share} (n,) each; worst: [{t0, t1, rms, joint}]; residual (T, n) = tau_J - model; t (T,)."""
+    rms: np.ndarray
+    fit: np.ndarray
+    mean: np.ndarray
+    regimes: dict
+    worst: list
+    residual: np.ndarray
+    t: np.ndarray
+
+
+def compare(model: Model, log, config: CompareConfig = CompareConfig()) -> Comparison:
+    """Where the model fails on the log: per-joint RMS and fit, the worst time segments, the error by regime."""
+    s = model.signals(log)
+    y = s.measured()
+    r = y - model.predict(s)
+    rms = np.sqrt(np.mean(r ** 2, axis=0))
+    fit = 100 * (1 - np.linalg.norm(r, axis=0) / np.maximum(np.linalg.norm(y - y.mean(axis=0), axis=0), 1e-300))
+    adq, addq = np.abs(s.dq), np.abs(s.ddq)
+    masks = {"at rest": adq < config.v_rest, "moving": adq >= config.v_rest, "fast": adq >= config.v_fast,
+             "accelerating": addq >= config.a_acc, "dq > 0": s.dq >= config.v_sign, "dq < 0": s.dq <= -config.v_sign}
+    regimes = {}
+    for name, m in masks.items():
+        cnt = m.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            regimes[name] = {"rms": np.sqrt((r ** 2 * m).sum(axis=0) / cnt), "mean": (r * m).sum(axis=0) / cnt,
+                             "share": cnt / len(r)}
+    seg = blocks_of(s.t, config.segment)
+    seg_rms = np.sqrt(np.stack([np.mean(r[seg == b] ** 2, axis=0) for b in range(seg.max() + 1)]))   # (S, n)
+    score = (seg_rms / np.maximum(rms, 1e-12)).mean(axis=1)          # each joint relative to its own RMS
+    worst = []
+    for b in np.argsort(-score)[:config.worst]:
+        rows = np.flatnonzero(seg == b)
+        j = int(np.argmax(seg_rms[b] / np.maximum(rms, 1e-12)))
+        worst.append({"t0": float(s.t[rows[0]]), "t1": float(s.t[rows[-1]]), "joint": j + 1,
+                      "rms": float(seg_rms[b, j]), "ratio": float(score[b])})
+    return Comparison(rms, fit, r.mean(axis=0), regimes, worst, r, s.t)
+
+
+@dataclass
+class Diagnosis:
+    """diagnose() output. rms (n,): held-out RMS of the input model; ranking: the first round's candidates, best first,
+    each {effect, k, explained, explained_joints, joints, significant, rms_after, drop, t, params}; steps: the forward
+    selection, each {effect, rms_before, rms_after, explained, joints, params}; selected: effect names; model: the input
+    model plus the selected effects, fitted on the whole log; stop: why selection ended."""
+    rms: np.ndarray
+    ranking: list
+    steps: list
+    selected: list
+    model: Model
+    stop: str
+    samples: int = 0
+    info: dict = field(default_factory=dict)
+
+
+def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = DiagnoseConfig()) -> Diagnosis:
+    """Rank the candidate effects (default: the library's effects not in the model) by how much of the model's
+    residual each explains on held-out data, then add the best and repeat while the gain is significant.
+
+    Hold-out: the log is cut into interleaved blocks of config.block seconds; each effect set is fitted on the even
+    blocks and scored on the odd ones, and vice versa (2-fold), so both halves see the same motions and an effect
+    cannot win by fitting noise. Significant: on at least one joint the held-out RMS drops by >= min_drop AND the
+    per-block log error ratios log(sse_before / sse_after) have t >= t_min AND the torque explained there is
+    >= min_torque RMS. Parsimony: a significant candidate with fewer parameters is preferred unless the better-scoring
+    one is significantly better than it by the same rule (e.g. coulomb over sigmoid, payload over rigid_payload on a
+    quasi-static log). Candidates: Effect objects or library names."""
+    s = model.signals(log)
+    y = s.measured() - model.torque(s, [e for e in model.effects if e.name in model.fixed])
+    block = blocks_of(s.t, config.block)
+    if block.max() + 1 < config.min_blocks:
+        raise ValueError(f"log: too short to diagnose: {block.max() + 1} hold-out blocks of {config.block} s, "
+                         f"expected at least {config.min_blocks} ({config.min_blocks * config.block} s)")
+    cands = [model.effect(c) for c in candidates] if candidates is not None else \
+        [e for e in model.library.values() if e.name not in model.names]
+    clash = [c.name for c in cands if c.name in model.names]
+    if clash:
+        raise ValueError(f"candidates: expected effects not yet in the model, found {clash} (in {model.names})")
+    sel = Selection(s, y, block, config)
+    for e in model.free:
+        sel.extend(e)
+    rms0 = np.sqrt(sel.sse.sum(axis=0) / len(s))
+    ranking, steps, stop = _forward_selection(sel, cands, config)
+    final = model.copy()
+    for st in steps:
+        final.add(st["obj"])
+    if final.free:
+        final.fit(s)
+    return Diagnosis(rms0, ranking, steps, [st["effect"] for st in steps], final, stop, len(s),
+                     {"blocks": int(block.max() + 1), "block_s": config.block})
+
+
+def _forward_selection(sel: Selection, cands: list, config: DiagnoseConfig):
+    """Add the top-ranked significant candidate while there is one: (first round's ranking, steps, stop reason)."""
+    N, ranking, steps = len(sel.s), None, []
+    for _ in range(config.max_add):
+        if not cands:
+            return ranking or [], steps, "no candidate effects left"
+        order = rank([sel.try_effect(c) for c in cands], config, N)
+        ranking = order if ranking is None else ranking
+        top = order[0]
+        if not top["significant"]:
+            j = int(np.argmax(top["drop"]))
+            return ranking, steps, (f"no remaining effect is significant (best: {top['effect']}, held-out RMS drop "
+                                    f"{100 * top['drop'][j]:.1f} % on J{j + 1}, t = {top['t'][j]:.1f})")
+        steps.append(dict(effect=top["effect"], obj=top["obj"], rms_before=np.sqrt(sel.sse.sum(axis=0) / N),
+                          rms_after=top["rms_after"], explained=top["explained"], joints=top["joints"],
+                          params=top["params"]))
+        sel.accept(top)
+        cands = [c for c in cands if c.name != top["effect"]]
+    return ranking, steps, f"stopped after max_add = {config.max_add} steps"
+
+
+def heldout_rms(model: Model, log, config: DiagnoseConfig = DiagnoseConfig()) -> np.ndarray:
+    """Per-joint RMS (n,) of the model's residual on held-out blocks (its free effects refitted per fold)."""
+    s = model.signals(log)
+    y = s.measured() - model.torque(s, [e for e in model.effects if e.name in model.fixed])
+    sel = Selection(s, y, blocks_of(s.t, config.block), config)
+    for e in model.free:
+        sel.extend(e)
+    return np.sqrt(sel.sse.sum(axis=0) / len(s))
+
+
+# --- text --------------------------------------------------------------------------------------------
+def _row(label, values, fmt="{:8.3f}"):
+    return f"  {label:26s}" + "".join(fmt.format(v) for v in values)
+
+
+def format_comparison(c: Comparison) -> str:
+    """compare() as a table: joints across, error measures and regimes down."""
+    n = len(c.rms)
+    lines = [_row("per joint", [f"J{j + 1}" for j in range(n)], "{:>8s}"), _row("RMS error [Nm]", c.rms),
+             _row("fit [%] (100 (1 - NRMSE))", c.fit, "{:8.1f}"), _row("mean error [Nm]", c.mean),
+             "  RMS error by regime [Nm] (share of samples in brackets on the right):"]
+    for name, r in c.regimes.items():
+        lines.append(_row(f"  {name}", r["rms"]) + f"   ({100 * np.nanmean(r['share']):.0f} %)")
+    for name in ("dq > 0", "dq < 0"):
+        lines.append(_row(f"  mean error, {name}", c.regimes[name]["mean"]))
+    worst = "; ".join(f"{w['t0']:.2f}-{w['t1']:.2f} s (J{w['joint']} {w['rms']:.3f} Nm, {w['ratio']:.1f}x its RMS)"
+                      for w in c.worst)
+    return "\n".join(lines + [f"  worst segments: {worst}"])
+
+
+def format_diagnosis(d: Diagnosis, config: DiagnoseConfig = DiagnoseConfig()) -> str:
+    """diagnose() as the ranking table, the forward-selection steps and the fitted model."""
+    n = len(d.rms)
+    lines = [f"  held-out: 2-fold over {d.info['blocks']} interleaved blocks of {d.info['block_s']} s; significant = "
+             f"held-out RMS drop >= {100 * config.min_drop:.0f} % on a joint with t >= {config.t_min} over blocks and "
+             f">= {config.min_torque} Nm RMS explained",
+             f"  {'rank':4s} {'effect':14s} {'params':>6s} {'explained':>9s}  {'joints':14s} held-out RMS after [Nm]"]
+    for i, r in enumerate(d.ranking):
+        joints = " ".join(map(str, r["joints"])) or "-"
+        lines.append(f"  {i + 1:4d} {r['effect']:14s} {r['k']:6d} {100 * r['explained']:8.1f}%  {joints:14s} "
+                     + " ".join(f"{v:.3f}" for v in r["rms_after"]))
+    lines.append(f"  forward selection, held-out RMS per joint [Nm], J1..J{n}:")
+    lines.append("    start       " + " ".join(f"{v:.3f}" for v in d.rms))
+    for st in d.steps:
+        lines.append(f"    + {st['effect']:9s} " + " ".join(f"{v:.3f}" for v in st["rms_after"])
+                     + f"   ({100 * st['explained']:.1f} % of the rest explained, joints {st['joints']})")
+    lines.append(f"    stop: {d.stop}")
+    if not d.steps:
+        lines.append("  nothing missing: no candidate effect explains a significant part of the residual")
+    lines += ["  model after selection (fitted on the whole log):", d.model.report()]
+    return "\n".join(lines)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return [_jsonable(v) for v in x.tolist()]
+    if isinstance(x, (float, np.floating)):
+        return None if not np.isfinite(x) else round(float(x), 6)
+    return x.item() if isinstance(x, np.generic) else x
+
+
+# --- CLI ---------------------------------------------------------------------------------------------
+def main(argv=None, prog: str = "diagnose.py") -> int:
+    """`diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]`: compare -> diagnose -> (add -> compare). Returns the
+    exit status (0 ok, 2 bad input); prog names the command in --help (e.g. "rme.py diagnose")."""
+    names = sorted(Model(Robot.panda()).library)
+    p = argparse.ArgumentParser(prog=prog, description="Compare the nominal model with a robot log, rank the "
+                                "missing physical effects on held-out data, add them and watch the error fall.")
+    p.add_argument("log", nargs="?", help=".npz (t, q, dq, [ddq], tau_J and/or tau_ext) or libfranka-style .csv")
+    p.add_argument("--add", nargs="+", default=[], metavar="EFFECT", choices=names + ["auto"],
+                   help=f"effects to add and fit ('auto': the ones diagnose selects); one of {', '.join(names)}")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p.add_argument("--plot", metavar="FILE", help="save residual-over-time and residual-vs-signal plots (matplotlib)")
+    p.add_argument("--model", default="nominal", choices=("nominal", "static"),
+                   help="starting model: nominal = gravity + motion (Eq. 1); static = gravity only (RME's)")
+    p.add_argument("--drop-nan", action="store_true", help="drop rows with NaN/inf (their count is reported)")
+    p.add_argument("--bench", action="store_true", help="time diagnose on a 20,000-sample, 7-joint log")
+    args = p.parse_args(argv)
+    if args.bench:
+        return bench(json_out=args.json)
+    if args.log is None:
+        p.error("a LOG file is needed (or --bench)")
+    if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
+            return 2
+    try:
+        log = load_log(args.log, LogConfig(drop_nan=args.drop_nan))
+        out = run(log, args.add, args.model)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if args.plot:
+        plot(args.plot, out)
+    if args.json:
+        print(json.dumps(_jsonable(out["json"])))
+    else:
+        print(out["text"])
+    return 0
+
+
+def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None) -> dict:
+    """compare -> diagnose -> add -> compare on a loaded log; the text report, the JSON object and the pieces."""
+    robot = robot or Robot.panda()
+    model = Model.nominal(robot) if start == "nominal" else Model.static(robot)
+    s = model.signals(log)                         # the log's rigid-body terms, computed once
+    before = compare(model, s)
+    d = diagnose(model, s)
+    i = log.info
+    text = [f"log {i.get('source')}: {len(log)} samples, {log.t[-1] - log.t[0]:.2f} s at dt = {i.get('dt', 0):.4g} s; "
+            f"{i.get('stale_rows', 0)} stale rows and {i.get('nan_rows', 0)} NaN rows dropped; "
+            f"filter: {i.get('filter')}",
+            f"compare: {start} model ({' + '.join(model.names)}), residual = tau_J - model = -tau_ext (paper sign)",
+            format_comparison(before), "diagnose:", format_diagnosis(d)]
+    js = {"log": i.get("source"), "samples": len(log), "stale_rows": i.get("stale_rows"), "nan_rows": i.get("nan_rows"),
+          "model": model.names, "rms": before.rms, "fit_percent": before.fit, "rms_heldout": d.rms,
+          "ranking": [{"effect": r["effect"], "explained": r["explained"], "joints": r["joints"],
+                       "significant": r["significant"], "rms_after": r["rms_after"]} for r in d.ranking],
+          "selected": d.selected, "stop": d.stop}
+    out = {"model": model, "before": before, "diagnosis": d, "log": log}
+    if add:
+        added = model.copy()
+        for name in (d.selected if "auto" in add else add):
+            added.add(name)
+        added.fit(s)
+        after, held = compare(added, s), heldout_rms(added, s)
+        text += [f"after adding {', '.join(added.names[len(model.names):]) or 'nothing'} (fitted on the whole log):"]
+        text += [] if "auto" in add else [added.report()]
+        text += [format_comparison(after),
+                 "  held-out RMS [Nm]  " + " ".join(f"{v:.3f}" for v in held)]
+        js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit, "rms_heldout": held,
+                       "params": {e.name: added.params[e.name] for e in added.free}}
+        out.update(added=added, after=after)
+    out.update(text="\n".join(text), json=js)
+    return out
+
+
+def plot(path, out: dict):
+    """Residual of the starting model over time per joint (left), and on the right the residual left for the top
+    effect (every other selected effect removed) against the signal that effect depends on, with its fitted torque."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    log, r = out["log"], out["before"].residual
+    n = r.shape[1]
+    fig, ax = plt.subplots(n, 2, figsize=(11, 1.6 * n), squeeze=False)
+    top = _top_effect(out)
+    step = max(1, len(r) // 4000)
+    for j in range(n):
+        ax[j, 0].plot(log.t, r[:, j], lw=0.6)
+        ax[j, 0].set_ylabel(f"J{j + 1} [Nm]")
+        if top is not None:
+            x = top["x"][::step, j]
+            ax[j, 1].plot(x, top["residual"][::step, j], ".", ms=1, label="residual")
+            ax[j, 1].plot(x, top["fitted"][::step, j], ".", ms=1, label=f"fitted {top['name']}")
+    ax[0, 0].set_title("residual tau_J - model over time")
+    ax[-1, 0].set_xlabel("t [s]")
+    if top is not None:
+        ax[0, 1].set_title(f"residual left for '{top['name']}' vs what it depends on")
+        ax[-1, 1].set_xlabel(top["xlabel"])
+        ax[0, 1].legend(loc="upper right", markerscale=8, fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _top_effect(out: dict):
+    """The first selected (else best-ranked) effect: its fitted torque, the residual without it, its signal."""
+    d, log = out["diagnosis"], out["log"]
+    name = d.selected[0] if d.selected else (d.ranking[0]["effect"] if d.ranking else None)
+    if name is None:
+        return None
+    if name in d.model.names:
+        m = d.model
+    else:
+        m = out["model"].copy().add(d.ranking[0]["obj"])
+        m.fit(log)
+    e = next(e for e in m.effects if e.name == name)
+    s = m.signals(log)
+    fitted = m.torque(s, [e])
+    signals = {"q": (log.q, "q [rad]"), "dq": (log.dq, "dq [rad/s]"), "ddq": (log.ddq, "ddq [rad/s^2]"),
+               "t": (np.broadcast_to(log.t[:, None], fitted.shape), "t [s]")}
+    x, xlabel = signals.get(e.signal, (fitted, "its torque [Nm]"))
+    return {"name": name, "fitted": fitted, "residual": m.residual(s) + fitted, "x": x, "xlabel": xlabel}
+
+
+def bench(seconds: float = 20.0, repeats: int = 5, json_out: bool = False) -> int:
+    """Median wall time of diagnose on a 20,000-sample, 7-joint log: a multi-sine with Gaz friction and offsets added
+    to the nominal torque and white sensor noise (synthetic: no plant needed to time the diagnosis)."""
+    from excite import ExciteConfig, multisine
+    from effects import _sigmoid_shape
+    from sim import GAZ_FO, GAZ_P1, GAZ_P2, GAZ_P3
+    from logs import prepare
+    rng = np.random.default_rng(0)
+    robot = Robot.panda()
+    t = 1e-3 * np.arange(int(seconds * 1000))
+    q, dq, ddq = multisine(t, ExciteConfig(), rng)
+    s = Signals(Log(t, q, dq, ddq, None, np.zeros_like(q)), robot)
+    tau_J = s.inverse_dynamics + np.asarray(GAZ_P1) * _sigmoid_shape(dq, np.asarray(GAZ_P2), np.asarray(GAZ_P3))
+    tau_J += np.asarray(GAZ_FO) + 0.02 * rng.normal(size=q.shape)
+    t0 = time.perf_counter()
+    log = prepare({"t": t, "q": q, "dq": dq, "tau_J": tau_J})
+    t_load = time.perf_counter() - t0
+    times, d = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        d = diagnose(Model.nominal(robot), log)
+        times.append(time.perf_counter() - t0)
+    res = {"samples": len(log), "joints": log.n, "median_s": float(np.median(times)), "runs": repeats,
+           "prepare_s": t_load, "selected": d.selected}
+    if json_out:
+        print(json.dumps(_jsonable(res)))
+    else:
+        print(f"diagnose on {len(log)} samples x {log.n} joints: median {res['median_s']:.3f} s over {repeats} runs "
+              f"(prepare: {t_load:.3f} s); selected {d.selected}")
+    return 0
+
+
+def hidden_effect(args):
+    """`python sim.py hidden-effect`: the walk-through compare -> diagnose -> add -> compare on a simulated log
+    (args: seed, preset, plot, json, view); see excite.demo."""
+    from excite import demo
+    return demo(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,245 @@
+"""Robot logs for model diagnosis (issue 6): read .npz or libfranka-style CSV, drop stale repeats, resample to a
+uniform grid, smooth (Savitzky-Golay) and differentiate; write .npz / CSV. tau_ext is kept in the paper's sign
+(Eq. 1, tau_ext = model - tau_J); libfranka's tau_ext_hat_filtered (= tau_J - model) is flipped on load."""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+SIGNS = ("paper", "libfranka")                 # tau_ext conventions a log may declare
+TIME_COLUMNS = {"t": 1.0, "time": 1.0, "time_s": 1.0, "timestamp": 1.0, "t_ms": 1e-3, "time_ms": 1e-3}
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    """How a raw log becomes a uniform, differentiated one."""
+    dt: float | None = None        # s, resampling period; None: the median stamp difference (1 ms on a Panda)
+    sg_window: float = 0.05        # s, Savitzky-Golay window (51 samples at 1 kHz; passes the < 5 Hz of arm motion)
+    sg_order: int = 3              # polynomial order of the Savitzky-Golay fit
+    min_samples: int = 200         # fewer samples left after cleaning: too short to fit (0.2 s at 1 kHz)
+    drop_nan: bool = False         # rows with NaN/inf: False raises ValueError, True drops them (counted in info)
+
+
+@dataclass(frozen=True)
+class Log:
+    """A uniform log: t (T,) [s]; q, dq, ddq (T, n) [rad, rad/s, rad/s^2]; tau_J and tau_ext (T, n) [Nm] or None,
+    tau_ext in the paper's sign. info: what loading did (source, stale rows dropped, NaN rows dropped, dt, filter)."""
+    t: np.ndarray
+    q: np.ndarray
+    dq: np.ndarray
+    ddq: np.ndarray
+    tau_J: np.ndarray | None
+    tau_ext: np.ndarray | None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return self.q.shape[1]
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    def rows(self, index) -> "Log":
+        """The log restricted to rows `index` (a slice, boolean mask or integer array)."""
+        pick = lambda a: None if a is None else a[index]
+        return dataclasses.replace(self, t=self.t[index], q=self.q[index], dq=self.dq[index],
+                                   ddq=self.ddq[index], tau_J=pick(self.tau_J), tau_ext=pick(self.tau_ext))
+
+
+# --- reading -----------------------------------------------------------------------------------------
+def load_log(path, config: LogConfig = LogConfig()) -> Log:
+    """Read a .npz or .csv robot log and prepare it (see prepare)."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"path: expected a log file (.npz or .csv), found no file at {path!r}")
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npz":
+        raw = read_npz(path)
+    elif ext == ".csv":
+        raw = read_csv(path)
+    else:
+        raise ValueError(f"path: expected a .npz or .csv log, found extension {ext!r}")
+    return prepare(raw, config, source=path)
+
+
+def read_npz(path) -> dict:
+    """Raw arrays of an .npz log: t, q, dq, optional ddq, tau_J and/or tau_ext (converted to the paper's sign using
+    the optional key tau_ext_sign, default "paper"; a key tau_ext_hat_filtered is taken as libfranka's sign)."""
+    with np.load(path, allow_pickle=False) as z:
+        raw = {k: np.asarray(z[k], dtype=float) for k in ("t", "q", "dq", "ddq", "tau_J") if k in z}
+        sign = str(z["tau_ext_sign"]) if "tau_ext_sign" in z else "paper"
+        if sign not in SIGNS:
+            raise ValueError(f"tau_ext_sign: expected one of {SIGNS}, found {sign!r}")
+        if "tau_ext" in z:
+            raw["tau_ext"] = np.asarray(z["tau_ext"], dtype=float) * (1.0 if sign == "paper" else -1.0)
+        elif "tau_ext_hat_filtered" in z:
+            raw["tau_ext"] = -np.asarray(z["tau_ext_hat_filtered"], dtype=float)
+    return raw
+
+
+def read_csv(path) -> dict:
+    """Raw arrays of a CSV log whose header uses libfranka RobotState names with indices (q[0]..q[n-1], dq[i],
+    tau_J[i], tau_ext_hat_filtered[i]; also accepted: name_i, and ddq[i] or tau_ext[i] in the paper's sign) and a
+    time column (t, time, time_s, timestamp in s; t_ms, time_ms in ms). Empty or unparsable cells read as NaN."""
+    with open(path, newline="") as f:
+        header = next(csv.reader(f), None)
+    if not header:
+        raise ValueError(f"csv: expected a header row in {path!r}, found an empty file")
+    names = [h.strip() for h in header]
+    try:                                       # fast path; genfromtxt reads empty or bad cells as NaN
+        body = np.loadtxt(path, delimiter=",", skiprows=1, dtype=float, ndmin=2)
+    except ValueError:
+        body = np.genfromtxt(path, delimiter=",", skip_header=1, dtype=float, invalid_raise=False)
+    body = body.reshape(-1, len(names)) if body.size else np.empty((0, len(names)))
+    groups, time_col = {}, None
+    for col, name in enumerate(names):
+        m = re.fullmatch(r"([A-Za-z_]+?)(?:\[(\d+)\]|_(\d+))", name)
+        if m:
+            groups.setdefault(m.group(1), {})[int(m.group(2) or m.group(3))] = col
+        elif name in TIME_COLUMNS and time_col is None:
+            time_col = (col, TIME_COLUMNS[name])
+    n = len(groups.get("q", {}))
+    missing = [] if time_col else [f"a time column ({', '.join(TIME_COLUMNS)})"]
+    for key in ("q", "dq"):
+        missing += [f"{key}[{i}]" for i in range(max(n, 1)) if i not in groups.get(key, {})]
+    torques = [k for k in ("tau_J", "tau_ext_hat_filtered", "tau_ext") if k in groups]
+    if not torques:
+        missing.append("tau_J[..] and/or tau_ext_hat_filtered[..]")
+    for key in torques + (["ddq"] if "ddq" in groups else []):
+        missing += [f"{key}[{i}]" for i in range(n) if i not in groups[key]]
+    if missing:
+        raise ValueError(f"csv: missing columns {', '.join(missing)} in {path!r}")
+    raw = {"t": body[:, time_col[0]] * time_col[1]}
+    for key in ("q", "dq", "ddq", "tau_J", "tau_ext"):
+        if key in groups:
+            raw[key] = body[:, [groups[key][i] for i in range(n)]]
+    if "tau_ext_hat_filtered" in groups and "tau_ext" not in raw:
+        raw["tau_ext"] = -body[:, [groups["tau_ext_hat_filtered"][i] for i in range(n)]]   # libfranka sign
+    return raw
+
+
+# --- preparing ---------------------------------------------------------------------------------------
+def prepare(raw: dict, config: LogConfig = LogConfig(), source: str = "arrays") -> Log:
+    """Check a raw log and make it uniform: NaN rows -> error (or dropped, counted), stale repeats dropped, time
+    checked strictly increasing, resampled onto t0 + k dt by linear interpolation; then, unless the log has ddq,
+    one Savitzky-Golay smoother on dq and on the torques, and ddq = central differences of the smoothed dq, so
+    tau_J and M ddq pass the same filter (parallel filtering; regressors of sharp effects get it too, effects.py).
+
+    Stale rule: a row whose q, dq and tau_J (tau_ext if no tau_J) all equal the previous row's exactly is a repeated
+    packet and is dropped, whatever its time stamp (a real sensor's noise never repeats 3n values; an arm truly at
+    rest loses nothing, since interpolation restores the same values)."""
+    raw = _check_raw(raw)
+    info = {"source": source, "rows": len(raw["t"])}
+    raw, info["nan_rows"] = _drop_nan(raw, config.drop_nan)
+    keep = ~_stale_rows(raw)
+    info["stale_rows"] = int((~keep).sum())
+    t, out, info["dt"], info["resampled"] = _resample({k: v[keep] for k, v in raw.items()}, config)
+    win = 2 * int(round(config.sg_window / info["dt"] / 2)) + 1
+    if win <= config.sg_order or win > len(t):
+        raise ValueError(f"config.sg_window: expected between {config.sg_order + 1} samples and the log "
+                         f"length {len(t)}, found {win} samples ({config.sg_window} s at dt = {info['dt']} s)")
+    if "ddq" in out:
+        info.update(smoothing=None, filter="none (ddq from the log)")
+    else:
+        smooth = lambda x: savgol_filter(x, win, config.sg_order, axis=0, mode="interp")
+        out["ddq"] = np.gradient(smooth(out["dq"]), info["dt"], axis=0)
+        out.update({k: smooth(out[k]) for k in ("tau_J", "tau_ext") if k in out})
+        info.update(smoothing=(win, config.sg_order), filter=f"Savitzky-Golay order {config.sg_order}, {win} samples "
+                    f"({win * info['dt']:.3f} s) on the torques and on dq, then central differences for ddq")
+    return Log(t=t, q=out["q"], dq=out["dq"], ddq=out["ddq"], tau_J=out.get("tau_J"), tau_ext=out.get("tau_ext"),
+               info=info)
+
+
+def _resample(raw, config):
+    """(t (G,), arrays on the grid, dt, resampled?) after checking the length and the time stamps."""
+    t = raw["t"]
+    if len(t) < config.min_samples:
+        raise ValueError(f"log: too short to fit: {len(t)} samples after cleaning, expected at least "
+                         f"{config.min_samples}")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if len(bad):
+        i = int(bad[0]) + 1
+        raise ValueError(f"t: expected strictly increasing time stamps, found t[{i}] = {t[i]!r} after "
+                         f"t[{i - 1}] = {t[i - 1]!r} ({len(bad)} such rows)")
+    dt = float(np.median(np.diff(t))) if config.dt is None else float(config.dt)
+    if not dt > 0:
+        raise ValueError(f"config.dt: expected a period > 0 s, found {dt}")
+    grid = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1)
+    if len(grid) == len(t) and np.allclose(grid, t, rtol=0, atol=1e-6 * dt):
+        return t, {k: v for k, v in raw.items() if k != "t"}, dt, False
+    return grid, {k: _interp(grid, t, v) for k, v in raw.items() if k != "t"}, dt, True
+
+
+def _check_raw(raw):
+    missing = [k for k in ("t", "q", "dq") if k not in raw]
+    if "tau_J" not in raw and "tau_ext" not in raw:
+        missing.append("tau_J and/or tau_ext")
+    if missing:
+        raise ValueError(f"log: missing {', '.join(missing)}; found keys {sorted(raw)}")
+    out = {k: np.asarray(v, dtype=float) for k, v in raw.items()
+           if k in ("t", "q", "dq", "ddq", "tau_J", "tau_ext") and v is not None}
+    t = out["t"] = out["t"].reshape(-1) if out["t"].ndim == 2 and 1 in out["t"].shape else out["t"]
+    if t.ndim != 1:
+        raise ValueError(f"t: expected shape (T,), found {t.shape}")
+    if out["q"].ndim != 2 or out["q"].shape[1] < 1:
+        raise ValueError(f"q: expected shape (T, n), found {out['q'].shape}")
+    n = out["q"].shape[1]
+    for k, v in out.items():
+        want = (len(t),) if k == "t" else (len(t), n)
+        if v.shape != want:
+            raise ValueError(f"{k}: expected shape {want} to match t and q, found {v.shape} (mismatched lengths)")
+    return out
+
+
+def _drop_nan(raw, drop):
+    bad = np.zeros(len(raw["t"]), bool)
+    for v in raw.values():
+        bad |= ~np.all(np.isfinite(v.reshape(len(bad), -1)), axis=1)
+    if bad.any() and not drop:
+        first = int(np.flatnonzero(bad)[0])
+        cols = [k for k, v in raw.items() if not np.all(np.isfinite(v[first]))]
+        raise ValueError(f"log: {int(bad.sum())} rows contain NaN/inf (first at row {first}, in {', '.join(cols)}); "
+                         "drop them with LogConfig(drop_nan=True) (CLI: --drop-nan)")
+    return ({k: v[~bad] for k, v in raw.items()} if bad.any() else raw), int(bad.sum())
+
+
+def _stale_rows(raw):
+    keys = [k for k in ("q", "dq", "tau_J") if k in raw] + ([] if "tau_J" in raw else ["tau_ext"])
+    same = np.ones(len(raw["t"]) - 1, bool) if len(raw["t"]) else np.zeros(0, bool)
+    for k in keys:
+        same &= np.all(raw[k][1:] == raw[k][:-1], axis=1)
+    return np.concatenate([[False], same]) if len(raw["t"]) else same
+
+
+def _interp(grid, t, v):
+    """Linear interpolation of the columns of v (T, n) from stamps t onto grid (G,)."""
+    return np.stack([np.interp(grid, t, v[:, j]) for j in range(v.shape[1])], axis=1)
+
+
+# --- writing -----------------------------------------------------------------------------------------
+def write_npz(path, log) -> None:
+    """Write a log (a Log or a dict of arrays t, q, dq, [ddq], tau_J, tau_ext) as .npz, tau_ext in the paper's sign."""
+    d = dataclasses.asdict(log) if isinstance(log, Log) else dict(log)
+    arrays = {k: np.asarray(d[k]) for k in ("t", "q", "dq", "ddq", "tau_J", "tau_ext") if d.get(k) is not None}
+    np.savez(path, **arrays, tau_ext_sign="paper")
+
+
+def write_csv(path, log, with_ddq: bool = False) -> None:
+    """Write a log as libfranka-style CSV: time, q[i], dq[i], tau_J[i], tau_ext_hat_filtered[i] (= -tau_ext, libfranka
+    sign) and, if with_ddq, ddq[i]. Values are written with 17 significant digits, so reading loses nothing."""
+    d = dataclasses.asdict(log) if isinstance(log, Log) else dict(log)
+    n = np.asarray(d["q"]).shape[1]
+    cols, names = [np.asarray(d["t"])[:, None]], ["time"]
+    for key, sign, out in (("q", 1, "q"), ("dq", 1, "dq"), ("tau_J", 1, "tau_J"),
+                           ("tau_ext", -1, "tau_ext_hat_filtered"), ("ddq", 1, "ddq")):
+        if d.get(key) is None or (key == "ddq" and not with_ddq):
+            continue
+        cols.append(sign * np.asarray(d[key]))
+        names += [f"{out}[{i}]" for i in range(n)]
+    np.savetxt(path, np.hstack(cols), delimiter=",", header=",".join(names), comments="", fmt="%.17g")
