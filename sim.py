@@ -384,6 +384,8 @@ DEMOS = {
                     _demo("scenarios", "limit_cycle")),
     "hidden-effect": ("a log with a hidden physical effect: compare, diagnose, add it, watch the error fall",
                       _demo("diagnose", "hidden_effect")),
+    "better-model": ("fit the robot's friction from a log, give it to RME, compare the estimates",
+                     _demo("scenarios", "better_model")),
     "timing": ("median microseconds of every hot path", _demo("bench", "timing")),
     "bench": ("the paper's Tables 1, 4, 5 in simulation (--json for one JSON object)", _demo("bench", "bench")),
 }

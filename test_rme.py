@@ -418,3 +418,17 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
         s = plant.step(ctrl.step(s.q, s.dq, comp)[0])
     assert len(est.history) == 2 and np.isnan(est.history[0].mean).all()
     np.testing.assert_array_equal(est.theta, [3.0, 1.0, -1.0, 1.0])     # 50 kg at 5 m, clipped to the limits
+
+
+def test_fitted_friction_correction_removes_the_friction_bias_of_rme():
+    """Friction holds part of a new load while the arm settles (RME reads it light); friction fitted by diagnose.py
+    on an excitation log of the same robot and subtracted from tau_ext removes most of that bias (issue 6, item 7)."""
+    import scenarios
+    config = PlantConfig.realistic(np.random.default_rng(21))
+    model = scenarios.fit_friction_model(config, seconds=8.0, seed=22)
+    theta = np.array([0.9, 0.05, -0.03, 0.13])
+    plain, better = (scenarios.hold_estimate(config, theta, seed=23, correction=c) for c in (None, model))
+    err_plain, err_better = np.abs(plain.mean - theta), np.abs(better.mean - theta)
+    assert err_plain[0] > 0.03                               # the bias is there without the better model ...
+    assert err_better[0] < 0.02 and err_better[0] < 0.5 * err_plain[0]        # ... and mostly gone with it
+    assert err_better[1] < err_plain[1]                      # rx too
