@@ -1,11 +1,14 @@
-"""Tests for nn_numpy.py: hand-written gradients vs central differences, attention symmetry, batching, the
-pseudo-wrench pipeline vs a least-squares reference, training, the shipped weights and weights-file checks."""
+"""Tests for nn_numpy.py and nn_train.py: hand-written gradients vs central differences, attention symmetry,
+batching, the pseudo-wrench pipeline vs references, training, the shipped weights, weights-file checks, commands."""
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 import nn_numpy as nn
+import nn_train as nt
 from dynamics import Robot
 
 SMALL = nn.NetConfig(d=8, heads=2, d_hidden=12)      # same code paths, few enough entries to check them all
@@ -175,6 +178,18 @@ def test_features_give_payload_wrench_in_ee_frame():
     assert np.allclose(x[:, 3:], np.cross(theta[1:], F), atol=1e-6)
 
 
+def test_ee_jacobian_equals_mujoco_single_state_jacobian_rotated_into_the_ee_frame():
+    """The windowed one-pass kinematics against MuJoCo's mj_jacSite and site_xmat, called state by state."""
+    robot, rng = Robot.panda(), np.random.default_rng(16)
+    q = np.array([0.2, -0.4, -0.3, -2.1, 0.5, 1.9, -0.6]) + 0.3 * rng.standard_normal((6, 7))
+    J = nn.ee_jacobian(robot, q)
+    assert J.shape == (6, 6, 7)
+    for t in range(len(q)):
+        Rt = robot.ee_pose(q[t])[1].T
+        Jw = robot.jacobian(q[t])                                    # (6, 7) world frame, single-state MuJoCo call
+        assert np.allclose(J[t], np.vstack([Rt @ Jw[:3], Rt @ Jw[3:]]), rtol=0, atol=1e-12)
+
+
 def test_payload_swap_augmentation_equals_features_of_the_swapped_window():
     """x + A (phi' - phi) must be exactly the input the window would give with payload theta' instead of theta
     and the same disturbance (noise, bias, transient): computed here directly with features()."""
@@ -185,12 +200,12 @@ def test_payload_swap_augmentation_equals_features_of_the_swapped_window():
     x = nn.features(robot, q, robot.payload_torque(q, theta[0]) + e)[None]
     A = nn.feature_regressor(robot, q)[None]
     for mass in (False, True):
-        x_new, theta_new = nn.swap_payload(x, theta, A, rng, 1.0, np.array([0.1, -0.1, -0.1, 0]),
+        x_new, theta_new = nt.swap_payload(x, theta, A, rng, 1.0, np.array([0.1, -0.1, -0.1, 0]),
                                            np.array([2.0, 0.1, 0.1, 0.2]), mass)
         assert np.all(theta_new[0, 1:] != theta[0, 1:]) and (theta_new[0, 0] != theta[0, 0]) == mass
         direct = nn.features(robot, q, robot.payload_torque(q, theta_new[0]) + e)
         assert np.allclose(x_new[0], direct, rtol=1e-10, atol=1e-10)
-    x_same, theta_same = nn.swap_payload(x, theta, A, rng, 0.0, 0.0, 1.0)     # prob 0: untouched
+    x_same, theta_same = nt.swap_payload(x, theta, A, rng, 0.0, 0.0, 1.0)     # prob 0: untouched
     assert np.array_equal(x_same, x) and np.array_equal(theta_same, theta)
 
 
@@ -213,17 +228,17 @@ def test_few_hundred_adam_steps_halve_held_out_mass_loss_and_beat_predicting_the
     shipped-weights test), so the check is the mass part of the scaled loss: under half the mean
     predictor's and under half the untrained network's; and the training loss halves."""
     rng = np.random.default_rng(10)
-    tr, va = nn.split_by_episode(nn.make_dataset(16, rng), rng)
-    test = nn.make_dataset(6, rng)
+    tr, va = nt.split_by_episode(nt.make_dataset(16, rng), rng)
+    test = nt.make_dataset(6, rng)
     params = nn.init_params(rng)
-    stats = nn.norm_stats(tr)
+    stats = nt.norm_stats(tr)
     xs = (test["x"] - stats["x_mean"]) / stats["x_std"]
     ts = (test["theta"] - stats["theta_mean"]) / stats["theta_std"]
-    before = nn.evaluate(params, xs, ts)[0]
-    cfg = nn.TrainConfig(batch=16, max_epochs=90, patience=1000, plateau=1000, calib_epochs=10)
-    trained, _, info = nn.train(tr, va, rng, cfg, params=params, log=lambda s: None)
+    before = nt.evaluate(params, xs, ts)[0]
+    cfg = nt.TrainConfig(batch=16, max_epochs=90, patience=1000, plateau=1000, calib_epochs=10)
+    trained, _, info = nt.train(tr, va, rng, cfg, params=params, log=lambda s: None)
     assert info["iterations"] >= 300
-    after = nn.evaluate(trained, xs, ts)[0]
+    after = nt.evaluate(trained, xs, ts)[0]
     assert after < 0.5 * (ts[:, 0] ** 2).mean() and after < 0.5 * before
     assert info["history"][-1][1] < 0.5 * info["history"][0][1]
 
@@ -234,7 +249,7 @@ def test_shipped_weights_beat_training_mean_on_held_out_simulated_windows():
     that of the training-set mean for m, rx, ry AND rz. rz (along the ee axis) is only observable through the
     tilt of the ee away from vertical, so its margin is the smallest (README: measured figures)."""
     model = nn.MismatchNet.load()
-    d = nn.make_dataset(30, np.random.default_rng(777), net=model.net)
+    d = nt.make_dataset(30, np.random.default_rng(777), net=model.net)
     mse_nn = ((model.predict(d["x"]) - d["theta"]) ** 2).mean(0)
     mse_mean = ((model.stats["theta_mean"] - d["theta"]) ** 2).mean(0)
     assert np.all(mse_nn < mse_mean), (mse_nn, mse_mean)
@@ -310,3 +325,38 @@ def test_corrupted_or_missing_weights_file_raises_value_error(tmp_path):
     for path in (tmp_path / "cut.npz", tmp_path / "absent.npz"):
         with pytest.raises(ValueError, match="could not read weights file"):
             nn.MismatchNet.load(path)
+
+
+# --- module split and commands --------------------------------------------------------------------
+def test_training_names_stay_importable_from_nn_numpy_and_load_nn_train_only_on_use():
+    """bench.py imports DataConfig, random_pose, simulate_episode from nn_numpy and rme.py MismatchNet: in a fresh
+    interpreter nn_numpy alone must not load nn_train, and the re-exported names must be nn_train's own objects."""
+    code = ("import sys, nn_numpy\n"
+            "assert 'nn_train' not in sys.modules\n"
+            "from nn_numpy import MismatchNet, DataConfig, random_pose, simulate_episode\n"
+            "import nn_train\n"
+            "assert all(getattr(nn_numpy, k) is getattr(nn_train, k) for k in nn_numpy.TRAINING_NAMES)\n"
+            "assert nn_numpy.benchmark is nn_train.benchmark\n")
+    here = os.path.dirname(os.path.abspath(__file__))
+    run = subprocess.run([sys.executable, "-c", code], cwd=here, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        nn.not_a_name
+
+
+def test_nn_numpy_main_hands_train_command_to_nn_train(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(nt, "train_from_scratch", lambda *a, **k: calls.append(a))
+    assert nn.main(["train", "--episodes", "3", "--seed", "5", "--out", str(tmp_path / "w.npz")]) == 0
+    assert calls == [(3, 5, str(tmp_path / "w.npz"))]
+
+
+@pytest.mark.skipif(not os.path.exists(nn.WEIGHTS), reason="no shipped weights.npz")
+def test_benchmark_reports_positive_microsecond_timings_under_keys_ending_in_us():
+    """bench.py's timing table collects the keys ending in "_us"; the three medians must be there, in us."""
+    r = nt.benchmark(repeats=10, held_out_episodes=1)
+    timings = {k: v for k, v in r.items() if k.endswith("_us")}
+    assert set(timings) == {"forward_median_us", "features_median_us", "train_step_median_us"}
+    assert all(np.isfinite(v) and 1.0 < v < 1e6 for v in timings.values()), timings
+    with pytest.raises(ValueError, match="repeats"):
+        nt.benchmark(repeats=3)
