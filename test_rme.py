@@ -309,16 +309,11 @@ def test_plant_differs_from_nominal_in_realistic_preset_only():
 from rme import RME, RMESettings            # noqa: E402  (grouped with the tests that use it)
 
 
-def static_window(theta, seed, q0=Q_READY, delay=0.25):
-    """A realistic-plant static hold (joint PD) with the payload attached at 0.2 s; the 200-sample window
-    starting `delay` s later and the mean tau_ext over the 30 samples before the change."""
-    rng = np.random.default_rng(seed)
-    plant = Plant(PlantConfig.realistic(rng), rng=rng)
-    plant.schedule_payload(0.2, theta[0], theta[1:])
-    log = record(plant, JointHold(plant.robot, q0), 0.2 + delay + 0.2, plant.reset(q0))
-    k0 = int(round(0.2 / plant.dt))
-    w = slice(k0 + int(round(delay / plant.dt)), None)
-    return log["q"][w], log["tau_ext"][w], log["tau_ext"][k0 - 31:k0 - 1].mean(axis=0)
+def static_window(theta, seed, delay=0.25):
+    """q (200, 7) and tau_ext referred to the torque before the change, from a realistic-plant hold (vi.py)."""
+    from vi import simulated_window
+    _, tau, q = simulated_window(theta, np.random.default_rng(seed), delay=delay)
+    return q, tau
 
 
 def test_estimate_recovers_mass_and_horizontal_com_on_realistic_windows():
@@ -328,8 +323,8 @@ def test_estimate_recovers_mass_and_horizontal_com_on_realistic_windows():
     errors, inside = [], []
     for i in range(12):
         theta = np.array([rng.uniform(0.3, 1.5), *rng.uniform(-0.06, 0.06, 2), rng.uniform(0.0, 0.15)])
-        q, tau, base = static_window(theta, seed=100 + i)
-        e = est.estimate(q, tau, baseline=base)
+        q, tau = static_window(theta, seed=100 + i)
+        e = est.estimate(q, tau)
         errors.append(e.mean - theta)
         inside.append(np.abs(e.mean - theta) <= 2 * e.std)
         assert e.converged and e.seconds < 0.1 and e.mean.shape == e.std.shape == (4,)
@@ -359,8 +354,8 @@ def test_missing_weights_fall_back_to_zero_prior_once(tmp_path, capsys):
     est = RME(weights=str(bad))
     err = capsys.readouterr().err
     assert err.count("cannot use the network weights") == 1 and "zero prior" in err
-    q, tau, base = static_window(np.array([0.8, 0.03, 0.0, 0.1]), seed=3)
-    e = est.estimate(q, tau, baseline=base)
+    q, tau = static_window(np.array([0.8, 0.03, 0.0, 0.1]), seed=3)
+    e = est.estimate(q, tau)
     np.testing.assert_array_equal(e.prior, np.zeros(4))
     assert abs(e.mean[0] - 0.8) < 0.08
 
@@ -432,3 +427,13 @@ def test_fitted_friction_correction_removes_the_friction_bias_of_rme():
     assert err_plain[0] > 0.03                               # the bias is there without the better model ...
     assert err_better[0] < 0.02 and err_better[0] < 0.5 * err_plain[0]        # ... and mostly gone with it
     assert err_better[1] < err_plain[1]                      # rx too
+
+
+def test_baseline_is_subtracted_before_estimating():
+    q, tau = static_window(np.array([0.6, 0.02, -0.01, 0.1]), seed=8)
+    offset = np.array([0.4, -0.3, 0.2, 0.5, -0.1, 0.05, 0.02])
+    a = RME(rng=np.random.default_rng(1)).estimate(q, tau)
+    b = RME(rng=np.random.default_rng(1)).estimate(q, tau + offset, baseline=offset)
+    np.testing.assert_allclose(a.mean, b.mean, atol=1e-9)
+    c = RME(rng=np.random.default_rng(1)).estimate(q, tau + offset)
+    assert np.abs(c.mean - a.mean).max() > 1e-3                # without it the offset does change the estimate

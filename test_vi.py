@@ -5,6 +5,7 @@ import pytest
 from scipy.optimize import minimize
 
 import vi
+from bench import TABLE5
 from dynamics import Robot
 from sim import Q_READY
 
@@ -159,7 +160,7 @@ def simulated():
     """Table 5's payloads at the ready pose and 10 random payloads at random poses near it (realistic plant), each
     with a calibrated prior mean (truth + sigma_prior * N(0, 1), as the Bayesian model assumes)."""
     rng = np.random.default_rng(5)
-    cases = [(np.array(th), Q_READY) for th in vi.TABLE5]
+    cases = [(np.array(th), Q_READY) for th in TABLE5]
     cases += [(np.array([rng.uniform(0.2, 1.5), *rng.uniform(-0.08, 0.08, 2), rng.uniform(0, 0.15)]),
                Q_READY + rng.uniform(-0.3, 0.3, 7)) for _ in range(10)]
     return [(th, vi.simulated_window(th, rng, q0), th + SP * rng.standard_normal(4)) for th, q0 in cases]

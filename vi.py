@@ -413,15 +413,12 @@ def simulated_window(theta, rng, q0=None, delay=0.3, length=0.2, preset="realist
     return plant.robot.payload_regressor(log["q"][sel]), log["tau_ext"][sel] - ref, log["q"][sel]
 
 
-TABLE5 = ((0.300, 0.03, 0.00, 0.13), (0.500, 0.06, 0.00, 0.13), (0.700, 0.06, 0.00, 0.13),
-          (0.900, 0.05, -0.03, 0.13), (1.100, 0.05, 0.02, 0.13), (1.290, 0.05, 0.01, 0.13))   # Table 5
-
-
 def benchmark(n_random=14, repeats=5, seed=0):
     """Median fit time and iterations on realistic simulated windows (Table 5's payloads at the ready pose and
     n_random random payloads at random poses near it), with the zero prior mean and a calibrated prior
     (truth + sigma_prior * N(0, 1)); the paper's Adam start (q = prior) for comparison. Returns a dict."""
     rng = np.random.default_rng(seed)
+    from bench import TABLE5
     from sim import Q_READY
     cases = [(np.array(th), Q_READY) for th in TABLE5]
     cases += [(np.array([rng.uniform(0.2, 1.5), *rng.uniform(-0.08, 0.08, 2), rng.uniform(0.0, 0.15)]),
