@@ -256,16 +256,6 @@ def held_out_mse(model, n_episodes=40, seed=2024):
     return (err ** 2).mean(0), ((model.stats["theta_mean"] - d["theta"]) ** 2).mean(0)
 
 
-def median_us(fn, repeats):
-    """Median wall time of fn() over `repeats` calls, in microseconds."""
-    ts = np.empty(repeats)
-    for i in range(repeats):
-        t = time.perf_counter()
-        fn()
-        ts[i] = time.perf_counter() - t
-    return float(np.median(ts) * 1e6)
-
-
 def benchmark(path=WEIGHTS, repeats=2000, held_out_episodes=40):
     """Timings (keys ending in "_us": medians in microseconds) of one window's forward pass (`repeats` calls), of
     `features` for a 200-sample window (repeats / 4) and of one training step, batch 32 (repeats / 10), then the
@@ -284,6 +274,7 @@ def benchmark(path=WEIGHTS, repeats=2000, held_out_episodes=40):
     def step():
         y, cache = forward(xb, params, rng=rng)
         adam_step(params, backward(mse_loss(y, tb)[1], cache)[1], state, 1e-4)
+    from bench import median_us
     out = {"forward_median_us": median_us(lambda: model.predict(x1), int(repeats)),
            "features_median_us": median_us(lambda: features(robot, q, tau), int(repeats) // 4),
            "train_step_median_us": median_us(step, int(repeats) // 10)}
