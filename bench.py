@@ -30,61 +30,73 @@ def median_us(fn, repeats=2000):
     return float(np.median(ts) * 1e6)
 
 
-def datasets(count, seed, longest=300):
-    """`count` simulated static-hold episodes with random payloads (the training distribution, other seeds):
-    list of (q (longest, 7), tau_ext referred to before the change (longest, 7), theta (4,))."""
-    import dataclasses
-    from nn_numpy import DataConfig, random_pose, simulate_episode
-    rng = np.random.default_rng(seed)
-    cfg = dataclasses.replace(DataConfig(), window=longest)
-    robot = Robot.panda()
+def datasets(count, seed, t_change=0.6, seconds=3.0):
+    """`count` simulated static holds under CPIC at random poses (the network's training distribution of poses and
+    payloads, other seeds), a payload attached at t_change, RME streaming in the loop: the windows the pipeline
+    itself uses. Each: dict(theta (4,), q, tau (L, 7) referred to the 30 samples before the change for the windows
+    of L = 50, 100, 200, 300 ms starting 200 ms before the detection, detected (bool), delay [ms])."""
+    from cpic import CPIC, Attractor
+    from nn_train import DataConfig, random_pose
+    from rme import RME
+    rng, cfg, out = np.random.default_rng(seed), DataConfig(), []
     lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
-    out = []
     for _ in range(count):
+        plant = Plant(PlantConfig.realistic(rng), rng=rng)
+        robot = plant.robot
         q0, theta = random_pose(robot, rng, cfg), rng.uniform(lo, hi)
-        Qw, Tw = simulate_episode(q0, theta, rng.uniform(0.0, 0.3, 1), rng, cfg)
-        out.append((Qw[0], Tw[0], theta))
+        ctrl, est = CPIC(robot, Attractor(*robot.ee_pose(q0))), RME(robot, rng=np.random.default_rng(seed))
+        plant.schedule_payload(t_change, theta[0], theta[1:])
+        s, Q, TAU = plant.reset(q0), [], []
+        for _ in range(int(round(seconds / plant.dt))):
+            s = plant.step(ctrl.step(s.q, s.dq, est.update(s.q, s.dq, s.tau_ext), s.tau_ext)[0])
+            Q.append(s.q), TAU.append(s.tau_ext)
+        Q, TAU = np.array(Q), np.array(TAU)
+        k_change = int(round(t_change / plant.dt)) - 1              # sample i is at time (i + 1) dt
+        hits = [e for e in est.history if e.t > t_change]
+        k_det = int(round(hits[0].t / plant.dt)) - 1 if hits else k_change + 300
+        ref = TAU[k_change - 30:k_change].mean(axis=0)
+        start = k_det - 200
+        rest = [e for e in hits if e.kind == "at rest"]
+        k_rest = int(round(rest[0].t / plant.dt)) if rest else len(Q)
+        out.append(dict(theta=theta, q=Q[start:start + 300], tau=TAU[start:start + 300] - ref, detected=bool(hits),
+                        delay=(k_det - k_change) * plant.dt * 1e3, q_rest=Q[k_rest - 300:k_rest],
+                        tau_rest=TAU[k_rest - 300:k_rest] - ref, at_rest=bool(rest)))
     return out
 
 
-def mse_table(est, data, length):
-    """MSE per parameter of est.estimate on the first `length` samples of each dataset; and the wall times."""
+def mse_table(est, data, length, at_rest=True):
+    """MSE per parameter of est.estimate on each dataset's window of `length` samples: the one ending where RME made
+    its estimate at rest (at_rest) or the one starting 200 ms before the detection; and the wall times."""
     err, secs = [], []
-    for q, tau, theta in data:
-        e = est.estimate(q[:length], tau[:length])
-        err.append(e.mean - theta)
+    for d in data:
+        q, tau = (d["q_rest"][-length:], d["tau_rest"][-length:]) if at_rest else (d["q"][:length], d["tau"][:length])
+        e = est.estimate(q, tau)
+        err.append(e.mean - d["theta"])
         secs.append(e.seconds)
     return np.mean(np.square(err), axis=0).tolist(), secs
 
 
-def closed_loop_trial(theta, seed, t_attach=0.75, seconds=1.6, controller="cpic"):
-    """Realistic plant held at the ready pose, payload attached at t_attach, RME streaming in the loop.
-    Returns (first Estimate after the attach or None, ms from the attach to the compensation being applied)."""
+def closed_loop_trial(theta, seed, t_attach=0.75, seconds=2.5):
+    """Realistic plant held at the ready pose by CPIC, payload attached at t_attach, RME streaming in the loop.
+    Returns (first estimate after the attach, last applied estimate, ms from the attach to the compensation being
+    applied); the estimates are None when nothing was detected."""
+    from cpic import CPIC, Attractor
     from rme import RME
     rng = np.random.default_rng(seed)
     plant = Plant(PlantConfig.realistic(rng), rng=rng)
-    est = RME(plant.robot, rng=np.random.default_rng(seed + 1))
-    ctrl = make_controller(plant.robot, Q_READY, controller)
+    robot = plant.robot
+    est, ctrl = RME(robot, rng=np.random.default_rng(seed + 1)), CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
     plant.schedule_payload(t_attach, theta[0], theta[1:])
     s = plant.reset(Q_READY)
     applied_at = None
-    for _ in range(int(seconds / plant.dt)):
+    for _ in range(int(round(seconds / plant.dt))):
         comp = est.update(s.q, s.dq, s.tau_ext)
         if applied_at is None and s.t > t_attach and np.any(comp):
             applied_at = s.t
-        s = plant.step(ctrl(s) + comp)
-    first = next((e for e in est.history if e.t > t_attach), None)
+        s = plant.step(ctrl.step(s.q, s.dq, comp, s.tau_ext)[0])
+    after = [e for e in est.history if e.t > t_attach and e.accepted]
     latency = np.nan if applied_at is None else (applied_at - t_attach) * 1e3
-    return first, latency
-
-
-def make_controller(robot, q0, kind="hold"):
-    """sample -> tau: "hold" (joint PD + gravity, sim.JointHold) or "cpic" (the paper's CPIC, cpic.py)."""
-    if kind == "cpic":
-        from cpic import CPIC, Attractor
-        c = CPIC(robot, Attractor(*robot.ee_pose(q0)))
-        return lambda s: c.step(s.q, s.dq)[0]
-    return JointHold(robot, q0)
+    return (after[0], after[-1], latency) if after else (None, None, latency)
 
 
 def tables(n_datasets=100, trials=10, seed=0, log=print):
@@ -92,26 +104,32 @@ def tables(n_datasets=100, trials=10, seed=0, log=print):
     from rme import RME, RMESettings
     t0 = time.perf_counter()
     data = datasets(n_datasets, seed=10_000 + seed)
-    log(f"simulated {n_datasets} datasets in {time.perf_counter() - t0:.0f} s")
+    detected = sum(d["detected"] for d in data)
+    log(f"simulated {n_datasets} datasets in {time.perf_counter() - t0:.0f} s; {detected} detections")
     nn, zero = RME(rng=np.random.default_rng(seed)), RME(settings=RMESettings(use_network=False),
                                                         rng=np.random.default_rng(seed))
     t1_nn, secs = mse_table(nn, data, 200)
     t1_zero, _ = mse_table(zero, data, 200)
+    t1_first = {k: mse_table(e, data, 200, at_rest=False)[0] for k, e in (("nn", nn), ("zero", zero))}
     t4 = {str(L): mse_table(nn, data, L)[0] for L in (50, 100, 200, 300)}
+    t4_first = {str(L): mse_table(nn, data, L, at_rest=False)[0] for L in (50, 100, 200, 300)}
     log(f"tables 1 and 4 done at {time.perf_counter() - t0:.0f} s")
     t5, latencies = [], []
     for i, theta in enumerate(TABLE5):
-        means = []
+        first, final = [], []
         for k in range(trials):
-            e, ms = closed_loop_trial(np.array(theta), seed=1000 * (i + 1) + k + seed)
+            e0, e1, ms = closed_loop_trial(np.array(theta), seed=1000 * (i + 1) + k + seed)
             latencies.append(ms)
-            if e is not None:
-                means.append(e.mean)
-        means = np.array(means) if means else np.full((1, 4), np.nan)
-        t5.append({"applied": list(theta), "mean": means.mean(0).tolist(), "std": means.std(0).tolist(),
-                   "detected": len(means) if np.isfinite(means).all() else 0, "trials": trials})
-        log(f"table 5 payload {theta}: mean {np.round(means.mean(0), 3)}")
+            if e0 is not None:
+                first.append(e0.mean), final.append(e1.mean)
+        first, final = (np.array(v) if v else np.full((1, 4), np.nan) for v in (first, final))
+        t5.append({"applied": list(theta), "mean": final.mean(0).tolist(), "std": final.std(0).tolist(),
+                   "first_mean": first.mean(0).tolist(), "first_std": first.std(0).tolist(),
+                   "detected": int(np.isfinite(first[:, 0]).sum()), "trials": trials})
+        log(f"table 5 payload {theta}: first {np.round(first.mean(0), 3)}, at rest {np.round(final.mean(0), 3)}")
     return {"table1": {"nn": t1_nn, "zero": t1_zero}, "table4": t4, "table5": t5,
+            "table1_first": t1_first, "table4_first": t4_first, "table1_detected": int(detected),
+            "table1_at_rest": int(sum(d["at_rest"] for d in data)),
             "estimate_ms_median": float(np.median(secs) * 1e3),
             "attach_to_compensation_ms_median": float(np.nanmedian(latencies)),
             "attach_to_compensation_ms_all": [float(x) for x in latencies],
@@ -123,12 +141,19 @@ def print_tables(res):
     print("MSE x 1e-3        m [kg^2]  rx [m^2]  ry [m^2]  rz [m^2]      paper")
     for k in ("nn", "zero"):
         print(f"Table 1 {k:>5}:   {fmt(res['table1'][k])}     {fmt(PAPER['table1'][k])}")
+    for k in ("nn", "zero"):
+        print(f"  first {k:>5}:    {fmt(res['table1_first'][k])}   (windows at the detection)")
     for k, v in res["table4"].items():
         print(f"Table 4 {k:>3} ms:  {fmt(v)}     {fmt(PAPER['table4'][k])}")
-    print("Table 5: applied (m, rx, ry, rz) -> mean +- std of the first estimate after the attach")
+    for k, v in res["table4_first"].items():
+        print(f"  first {k:>3} ms:  {fmt(v)}")
+    print(f"({res['table1_detected']} of {res['settings']['datasets']} changes detected, "
+          f"{res['table1_at_rest']} estimated at rest; the others' windows are taken at fixed times)")
+    print("Table 5: applied (m, rx, ry, rz) -> mean +- std over the trials: first estimate | estimate at rest")
     for row in res["table5"]:
-        ms = "  ".join(f"{m:6.3f}+-{s:5.3f}" for m, s in zip(row["mean"], row["std"]))
-        print(f"  {row['applied']} -> {ms}  ({row['detected']}/{row['trials']} detected)")
+        first = "  ".join(f"{m:6.3f}+-{s:5.3f}" for m, s in zip(row["first_mean"], row["first_std"]))
+        rest = "  ".join(f"{m:6.3f}+-{s:5.3f}" for m, s in zip(row["mean"], row["std"]))
+        print(f"  {row['applied']}\n     first:   {first}\n     at rest: {rest}   ({row['detected']}/{row['trials']} detected)")
     print(f"estimate (network + VI) median: {res['estimate_ms_median']:.2f} ms (paper: 226 ms)")
     print(f"load change -> compensation applied, median: {res['attach_to_compensation_ms_median']:.0f} ms "
           f"(paper: about 400 ms)")

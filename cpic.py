@@ -123,7 +123,11 @@ class CPICConfig:
     q_max: tuple | None = None
     null_weight: float = 1.0          # w in + w |N (tau - tau_0)|^2 (our choice: H = J^+ J^+T alone is singular
     #                                   for a 7-DoF arm; w does not change the unconstrained optimum)
-    null_damping: float = 1.0         # N m s/rad, k_n in tau_0 = G - k_n dq (our choice; dissipative)
+    null_damping: float = 1.0         # N m s/rad, k_n in tau_0 = G - k_n dq + k_p (q_rest - q) (ours; dissipative)
+    null_stiffness: float = 10.0      # N m/rad, k_p: a posture spring in the null space (ours, as in Franka's
+    #                                   Cartesian impedance example); without it a payload's torque has a null-space
+    #                                   part nothing resists, and the arm drifts along its redundancy to a joint limit
+    q_rest: tuple | None = None       # rad, the posture of that spring; None: the q of the first step
     fallback_damping: tuple = (20.0,) * 4 + (3.0,) * 3   # N m s/rad, safe torque G + comp - K dq (our choice)
     max_iterations: int = 100         # active-set changes per QP
 
@@ -147,9 +151,9 @@ class CPIC:
     """ctrl = CPIC(robot, policy, config); tau, info = ctrl.step(q, dq, compensation) at 1 kHz.
 
     QP over tau (n,):  min |J^+T tau - F_c|^2 + w |N (tau - tau_0)|^2,  J^+T = (J J^T)^-1 J (6, n),
-    N = I - J^T J^+T (null space of J), tau_0 = G - k_n dq, subject to, with ddq = M^-1 (tau - C dq - G)
+    N = I - J^T J^+T (null space of J), tau_0 = G - k_n dq + k_p (q_rest - q), subject to, with ddq = M^-1 (tau - C dq - G)
     (nominal model; tau_ext = 0 unless given), the E-CBF h'' >= -k1 h - k2 h' for h = q - q_min, q_max - q, and
-    |tau + comp| <= tau_max. With nothing active tau = J^T F_c + N tau_0 = G - J^T D (xdot - f) - k_n N dq
+    |tau + comp| <= tau_max. With nothing active tau = J^T F_c + N tau_0 = G - J^T D (xdot - f) + N (k_p (q_rest - q) - k_n dq)
     (Appendix D, unconstrained case, plus the null-space term a redundant arm needs). The compensation (e.g.
     -robot.payload_torque(q, theta_hat)) is added after the QP (Appendix B). If the QP fails (infeasible,
     singular J, ...) the safe torque G + comp - K dq is used; the output is always finite and within tau_max.
@@ -171,6 +175,7 @@ class CPIC:
             raise ValueError(f"config: expected q_min < q_max and tau_max > 0, found {self.q_min}, "
                              f"{self.q_max}, {self.tau_max}")
         self._I = np.eye(n)
+        self._q_rest = None
         self._A = np.zeros((4 * n, n))                # constraint rows; the torque rows never change
         self._A[2 * n:3 * n], self._A[3 * n:] = self._I, -self._I
         self.reset()
@@ -232,7 +237,9 @@ class CPIC:
             # H = J^+ J^+T + w N has the closed-form inverse H^-1 = J^T J + N / w (J^+T J^T = I, J N = 0)
             Hinv = J.T @ J + Nproj / c.null_weight
             Hinv = 0.5 * (Hinv + Hinv.T)
-            null = Nproj @ (G - c.null_damping * dq)  # N tau_0
+            if self._q_rest is None:
+                self._q_rest = q.copy() if c.q_rest is None else np.asarray(c.q_rest, dtype=float)
+            null = Nproj @ (G - c.null_damping * dq + c.null_stiffness * (self._q_rest - q))   # N tau_0
             g = -(Jp.T @ F_c + c.null_weight * null)
             b = self._constraint_bounds(q, dq, np.linalg.inv(M), bias, comp)
         except np.linalg.LinAlgError:

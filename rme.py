@@ -33,6 +33,10 @@ class RMESettings:
                                    #   share of the torque change in its window; a change of the pose-dependent bias
                                    #   after a large move (not a load) explains 0.6-0.7, real loads 0.97-1.0 (sim.py
                                    #   pick-place and basket, realistic preset)
+    refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
+                                   #   part of the load while it moved: the first estimate reads light by a few %)
+    rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
+    refine_within: float = 3.0     # s after the detection; later, no estimate at rest is made
     vi: vi.VISettings = field(default_factory=vi.VISettings)
     detector: DetectorSettings = field(default_factory=DetectorSettings)
 
@@ -51,6 +55,7 @@ class Estimate:
     t: float = float("nan")        # stream time of the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
+    kind: str = "window"             # "detection", "at rest" (the estimate once the arm is still) or "window"
 
 
 class RME:
@@ -71,6 +76,7 @@ class RME:
         self._k = 0                                    # samples seen
         self.theta = np.zeros(4)                       # the estimate being compensated
         self._pending = None                           # (sample index when it applies, Estimate)
+        self._refine, self._still = None, 0            # a pending estimate at rest; samples the arm has been still
         self.history: list[Estimate] = []
         nu_ok = self.robot.model.nu == n
         self._limit = self.robot.model.actuator_ctrlrange[:, 1].copy() if nu_ok else np.full(n, np.inf)
@@ -136,33 +142,61 @@ class RME:
         tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta) if self.theta[0] else np.zeros(n)
         if self.detector.update(tau - tau_mm, pseudo_force(J, tau - tau_mm)) and self._k >= keep:
             self._on_detection()
+        self._still = self._still + 1 if np.abs(dq).max() < self.settings.rest_speed else 0
+        if self._refine is not None and self._pending is None:
+            if self._k > self._refine["deadline"]:
+                self._refine = None
+            elif self._still >= self.settings.window:
+                self._on_rest()
         if self._pending is not None and self._k >= self._pending[0]:
             self.theta = _safe_theta(self._pending[1].mean, self.theta, self.settings.max_mass)
             self._pending = None
             tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta)
         return np.clip(-tau_mm, -self._limit, self._limit)
 
-    def _on_detection(self):
-        """Estimate the total payload from the newest window, referred to the torque before the change."""
-        s, keep, k = self.settings, self.settings.detector.window, self._k
-        order = (np.arange(keep) + k) % keep                          # oldest .. newest
+    def _buffer(self):
+        """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction."""
+        keep = self.settings.detector.window
+        order = (np.arange(keep) + self._k) % keep
         Q, TAU = self._q[order], self._tau[order]
         if self.correction is not None:                               # the effects a better model explains
             TAU = TAU - self.correction.correction(Q, self._dq[order])
+        return Q, TAU
+
+    def _on_detection(self):
+        """Estimate the total payload from the newest window, referred to the torque before the change."""
+        s = self.settings
+        Q, TAU = self._buffer()
         q_ref, tau_ref = Q[:s.reference], TAU[:s.reference]
         # bias = what the previous estimate does not explain before the change: tau_ref - tau_mm(q_ref, theta_prev)
         bias = (tau_ref - self.robot.payload_regressor(q_ref) @ _phi(self.theta)).mean(axis=0)
-        Qw, Tw = Q[-s.window:], TAU[-s.window:] - bias
+        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection")
+        if e.accepted and s.refine:
+            self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
+
+    def _on_rest(self):
+        """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
+        friction no longer holds part of the load, and the arm is back near the pose it had before the change."""
+        s, r = self.settings, self._refine
+        self._refine = None
+        Q, TAU = self._buffer()
+        if self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest").accepted:
+            self.detector.reset()           # the residual it watches steps with the new estimate: not a load change
+
+    def _change(self, Qw, Tw, theta_before, kind) -> Estimate:
+        """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted."""
+        s, k = self.settings, self._k
         Y = self.robot.payload_regressor(Qw)
         e = self._estimate(Qw, Tw, Y)
-        e.t = k / s.rate
-        before = np.sum((Tw - Y @ _phi(self.theta)) ** 2)          # what the old estimate leaves unexplained
+        e.t, e.kind = k / s.rate, kind
+        before = np.sum((Tw - Y @ _phi(theta_before)) ** 2)        # what the old estimate leaves unexplained
         e.explained = 1.0 - np.sum((Tw - Y @ _phi(e.mean)) ** 2) / before
         e.accepted = bool(e.explained >= s.min_explained)
         self.history.append(e)
         if e.accepted:
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
             self._pending = (k + delay, e)
+        return e
 
 
 def _phi(theta):

@@ -52,7 +52,7 @@ def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY):
         while pending and pending[0][0] <= s.t:
             ctrl.policy = pending.pop(0)[1]
         comp = est.update(s.q, s.dq, s.tau_ext) if est is not None else None
-        tau, _ = ctrl.step(s.q, s.dq, comp)
+        tau, _ = ctrl.step(s.q, s.dq, comp, s.tau_ext)   # Eq. 7: the barriers see tau_ext
         log["t"][k], log["q"][k], log["theta"][k] = s.t, s.q, plant.theta
         log["theta_hat"][k] = est.theta if est is not None else 0.0
         log["target"][k] = getattr(ctrl.policy, "p_star", getattr(ctrl.policy, "center", np.zeros(3)))
@@ -71,7 +71,8 @@ def print_estimates(log, label="RME"):
         applied = np.flatnonzero((t >= e.t) & np.all(np.isclose(log["theta_hat"], _clipped(e.mean)), axis=1))
         when = (f"applied at {t[applied[0]]:.3f} s" if len(applied) and e.accepted else
                 f"rejected: explains only {100 * e.explained:.0f} % of the change (not a load)")
-        print(f"  {e.t:6.3f} s  {label} detects a change; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
+        what = "detects a change" if e.kind == "detection" else "estimates again, arm at rest"
+        print(f"  {e.t:6.3f} s  {label} {what}; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m  [truth m = {theta[k, 0]:.3f}, "
               f"r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  {e.seconds * 1e3:.1f} ms, {when}")
 
@@ -249,7 +250,7 @@ def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1
     plant.schedule_payload(t_attach, theta[0], theta[1:])
     s = plant.reset(Q_READY)
     for _ in range(int(round(seconds / plant.dt))):
-        s = plant.step(ctrl.step(s.q, s.dq, est.update(s.q, s.dq, s.tau_ext))[0])
+        s = plant.step(ctrl.step(s.q, s.dq, est.update(s.q, s.dq, s.tau_ext), s.tau_ext)[0])
     return est.history[0] if est.history else None
 
 
