@@ -140,7 +140,8 @@ class RME:
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
         J = self.robot.jacobian(q)
         tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta) if self.theta[0] else np.zeros(n)
-        if self.detector.update(tau - tau_mm, pseudo_force(J, tau - tau_mm)) and self._k >= keep:
+        r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
+        if self.detector.update(r, pseudo_force(J, r)) and self._k >= keep:
             self._on_detection()
         self._still = self._still + 1 if np.abs(dq).max() < self.settings.rest_speed else 0
         if self._refine is not None and self._pending is None:
