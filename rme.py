@@ -36,7 +36,7 @@ class RMESettings:
     refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
                                    #   part of the load while it moved: the first estimate reads light by a few %)
     rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
-    refine_within: float = 3.0     # s after the detection; later, no estimate at rest is made
+    refine_within: float = 2.0     # s after the detection; later, no estimate at rest is made
     vi: vi.VISettings = field(default_factory=vi.VISettings)
     detector: DetectorSettings = field(default_factory=DetectorSettings)
 
@@ -141,8 +141,11 @@ class RME:
         J = self.robot.jacobian(q)
         tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta) if self.theta[0] else np.zeros(n)
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
-        if self.detector.update(r, pseudo_force(J, r)) and self._k >= keep:
+        fired = self.detector.update(r, pseudo_force(J, r)) and self._k >= keep
+        if fired and self._refine is None:
             self._on_detection()
+        # while an estimate at rest is pending, the arm is still moving in answer to the last compensation and the
+        # detector's reference is not settled; the estimate at rest will include any change meanwhile (ours)
         self._still = self._still + 1 if np.abs(dq).max() < self.settings.rest_speed else 0
         if self._refine is not None and self._pending is None:
             if self._k > self._refine["deadline"]:
