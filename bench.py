@@ -191,6 +191,16 @@ def timing(args=None):
         s = [plant.reset(Q_READY)]
         tau = hold(s[0])                               # a fixed command: the arm stays close to its pose
         rows[f"plant step ({preset})"] = median_us(lambda: plant.step(tau), 3000)
+    from rme import RME
+    from vi import simulated_window
+    est = RME(robot, rng=np.random.default_rng(0))
+    z = np.zeros(N)
+    rows["RME.update (one 1 kHz sample, no detection)"] = median_us(lambda: est.update(Q_READY, z, z), 3000)
+    windows = [simulated_window(np.array(th), np.random.default_rng(i))[1:] for i, th in enumerate(TABLE5)]
+    ests = []
+    for tau, qw in windows * 20:
+        ests.append(est.estimate(qw, tau).seconds * 1e6)
+    rows["RME.estimate (network + VI, 200-sample window; Table 5 windows)"] = float(np.median(ests))
     for name, fn in _module_timings():
         rows[name] = fn
     for k, v in rows.items():

@@ -247,15 +247,24 @@ class Robot:
         the torque the payload's weight applies to the arm, like tau_ext).
         """
         q, batched = as_states("q", q, self.n)
-        if batched:
-            J, R, _ = self._fk_jacobian(q)
-        else:
+        if not batched:
             self._kin(q[0])
-            J, R = self._jac()[None], self.data.site_xmat[self.site].reshape(1, 3, 3)
-        Y = np.empty((q.shape[0], self.n, 4))
+            return self.payload_regressor_from(self._jac(), self.data.site_xmat[self.site].reshape(3, 3))
+        J, R, _ = self._fk_jacobian(q)
+        return self.payload_regressor_from(J, R)
+
+    def payload_regressor_from(self, J, R):
+        """Y (n, 4) from an already computed J (6, n) and R (3, 3) of one state, or (T, n, 4) from J (T, 6, n) and
+        R (T, 3, 3) of a window (see payload_regressor)."""
+        if J.ndim == 2:
+            Y = np.empty((self.n, 4))
+            Y[:, 0] = self.g @ J[:3]
+            Y[:, 1:] = -J[3:].T @ (self._g_skew @ R)
+            return Y
+        Y = np.empty((J.shape[0], self.n, 4))
         Y[:, :, 0] = self.g @ J[:, :3]
         Y[:, :, 1:] = -J[:, 3:].transpose(0, 2, 1) @ (self._g_skew @ R)
-        return Y if batched else Y[0]
+        return Y
 
     def payload_torque(self, q, theta):
         """tau_mm (n,) / (T, n) for theta = (m, rx, ry, rz) (kg, m in the ee frame)."""

@@ -227,7 +227,7 @@ def pseudo_wrench(J, tau_ext, lam=0.01):
     return np.linalg.solve(A, (J @ tau_ext[..., None]))[..., 0]
 
 
-def features(robot, q, tau_ext, cfg=NetConfig()):
+def features(robot, q, tau_ext, cfg=NetConfig(), kinematics=None):
     """Network input x (M, 6) from a window q (T, n), tau_ext (T, n) with T >= M (T = 200 at 1 kHz).
 
     tau_ext must already be REFERRED to the torque just before the load change (tau_ext - its mean over the
@@ -245,6 +245,10 @@ def features(robot, q, tau_ext, cfg=NetConfig()):
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(tau_ext))):
         raise ValueError("q, tau_ext: expected finite values, found NaN or inf")
     idx = token_indices(q.shape[0], cfg.M)
+    if kinematics is not None:                     # (R (T, 3, 3), J (T, 6, n)) of the whole window, already known
+        R, J = kinematics[0][idx], kinematics[1][idx]
+        Rt = R.transpose(0, 2, 1)
+        return pseudo_wrench(np.concatenate([Rt @ J[:, :3], Rt @ J[:, 3:]], axis=1), tau_ext[idx], cfg.lam)
     return pseudo_wrench(ee_jacobian(robot, q[idx]), tau_ext[idx], cfg.lam)
 
 
@@ -340,9 +344,10 @@ class MismatchNet:
         theta = s["theta_mean"] + s["theta_std"] * y
         return theta[0] if single else theta
 
-    def predict_window(self, robot, q, tau_ext):
-        """theta (4,) from a window q (T, n), tau_ext (T, n) already referred to the pre-change torque."""
-        return self.predict(features(robot, q, tau_ext, self.net))
+    def predict_window(self, robot, q, tau_ext, kinematics=None):
+        """theta (4,) from a window q (T, n), tau_ext (T, n) already referred to the pre-change torque;
+        kinematics: (R (T, 3, 3), J (T, 6, n)) of the window when the caller has them."""
+        return self.predict(features(robot, q, tau_ext, self.net, kinematics))
 
 
 # ----------------------------------------------------------------------------------------------------

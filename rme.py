@@ -112,17 +112,18 @@ class RME:
             if dq.shape != q.shape:
                 raise ValueError(f"dq: expected shape {q.shape} like q, found {dq.shape}")
             tau = tau - self.correction.correction(q, dq)
-        return self._estimate(q, tau)
+        return self._estimate(q, tau)[0]
 
-    def _estimate(self, q, tau, Y=None) -> Estimate:
-        """Network prior and VI on a checked, referred and corrected window; Y = payload_regressor(q) if known."""
+    def _estimate(self, q, tau):
+        """Network prior and VI on a checked, referred and corrected window: (Estimate, Y = payload_regressor(q))."""
         start = time.perf_counter()
-        Y = self.robot.payload_regressor(q) if Y is None else Y
-        prior = self.net.predict_window(self.robot, q, tau) if self.net is not None else np.zeros(4)
+        _, R, J = self.robot.kinematics(q)                     # one forward-kinematics pass for the window
+        Y = self.robot.payload_regressor_from(J, R)
+        prior = self.net.predict_window(self.robot, q, tau, (R, J)) if self.net is not None else np.zeros(4)
         post = vi.fit(Y, tau, prior, self.settings.vi, self.rng)
         seconds = time.perf_counter() - start
         return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), seconds, post.iterations,
-                        post.converged)
+                        post.converged), Y
 
     # --- streaming -----------------------------------------------------------------------------
     def update(self, q, dq, tau_ext) -> np.ndarray:
@@ -138,8 +139,9 @@ class RME:
         self._k += 1
         # the detector watches what the current estimate does not explain, r = tau_ext - tau_mm(q, theta_hat):
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
-        J = self.robot.jacobian(q)
-        tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta) if self.theta[0] else np.zeros(n)
+        _, R, J = self.robot.kinematics(q)                            # one kinematics pass per sample
+        Y = self.robot.payload_regressor_from(J, R)
+        tau_mm = Y @ _phi(self.theta)
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         fired = self.detector.update(r, pseudo_force(J, r)) and self._k >= keep
         if fired and self._refine is None:
@@ -155,7 +157,7 @@ class RME:
         if self._pending is not None and self._k >= self._pending[0]:
             self.theta = _safe_theta(self._pending[1].mean, self.theta, self.settings.max_mass)
             self._pending = None
-            tau_mm = self.robot.payload_regressor(q) @ _phi(self.theta)
+            tau_mm = Y @ _phi(self.theta)
         return np.clip(-tau_mm, -self._limit, self._limit)
 
     def _buffer(self):
@@ -190,8 +192,7 @@ class RME:
     def _change(self, Qw, Tw, theta_before, kind) -> Estimate:
         """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted."""
         s, k = self.settings, self._k
-        Y = self.robot.payload_regressor(Qw)
-        e = self._estimate(Qw, Tw, Y)
+        e, Y = self._estimate(Qw, Tw)
         e.t, e.kind = k / s.rate, kind
         before = np.sum((Tw - Y @ _phi(theta_before)) ** 2)        # what the old estimate leaves unexplained
         e.explained = 1.0 - np.sum((Tw - Y @ _phi(e.mean)) ** 2) / before
