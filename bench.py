@@ -174,6 +174,7 @@ def timing(args=None):
     q, dq = Q_READY + rng.normal(0, 0.2, N), rng.normal(0, 0.5, N)
     Qw = Q_READY + rng.normal(0, 0.2, (200, N))
     theta = np.array([0.9, 0.05, -0.03, 0.13])
+    phi = np.r_[theta[0], theta[0] * theta[1:]]
     rows = {
         "jacobian": median_us(lambda: robot.jacobian(q)),
         "mass_matrix": median_us(lambda: robot.mass_matrix(q)),
@@ -181,8 +182,9 @@ def timing(args=None):
         "payload_regressor": median_us(lambda: robot.payload_regressor(q)),
         "payload_regressor (200-sample window)": median_us(lambda: robot.payload_regressor(Qw), 300),
         "terms (J, M, bias in one pass)": median_us(lambda: robot.terms(q, dq)),
-        "terms + payload_torque (one control step's model)":
-            median_us(lambda: (robot.terms(q, dq), robot.payload_torque(q, theta))),
+        "terms + payload_torque (two calls)": median_us(lambda: (robot.terms(q, dq), robot.payload_torque(q, theta))),
+        "control_terms + payload torque from its J, R (one control step's model)":
+            median_us(lambda: _step_model(robot, q, dq, phi)),
     }
     for preset in ("ideal", "realistic"):
         r2 = np.random.default_rng(1)
@@ -206,6 +208,12 @@ def timing(args=None):
     for k, v in rows.items():
         print(f"{k:58s} {v:9.1f} us")
     return rows
+
+
+def _step_model(robot, q, dq, phi):
+    """What one control step with compensation needs from the model: J, M, C dq + G, G, p, R and tau_mm."""
+    J, M, b, G, p, R = robot.control_terms(q, dq)
+    return J, M, b, G, p, R, robot.payload_regressor_from(J, R) @ phi
 
 
 def _module_timings():

@@ -223,10 +223,16 @@ class Robot:
             R = R @ Rb
             if jnt >= 0:
                 dof, a_loc, c_loc = m.jnt_dofadr[jnt], m.jnt_axis[jnt], m.jnt_pos[jnt]
+                angle = q[:, m.jnt_qposadr[jnt]]
                 anchor = p + R @ c_loc if c_loc.any() else p                  # (T, 3)
-                R = R @ _axis_rotation(a_loc, q[:, m.jnt_qposadr[jnt]])      # R_body = R_pre Rot(a, q)
+                if a_loc[0] == 0.0 and a_loc[1] == 0.0 and a_loc[2] > 0.0:    # about the body z axis (DH arms)
+                    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+                    x, y = R[:, :, 0], R[:, :, 1]                             # R_body = R_pre RotZ(q), by columns
+                    R = np.stack([c * x + s * y, c * y - s * x, R[:, :, 2]], axis=2)
+                else:
+                    R = R @ _axis_rotation(a_loc, angle)                      # R_body = R_pre Rot(a, q)
                 p = anchor - R @ c_loc if c_loc.any() else anchor
-                axes[:, dof], anchors[:, dof] = R @ a_loc, anchor
+                axes[:, dof], anchors[:, dof] = R @ (a_loc / np.linalg.norm(a_loc)), anchor
         pos, Rs = self._site_frame
         return p + R @ pos, R @ Rs, axes, anchors
 
