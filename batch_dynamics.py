@@ -1,6 +1,6 @@
 """Window-vectorised rigid-body terms of the nominal arm for model diagnosis (issue 6): forward kinematics and
 recursive Newton-Euler (Eq. 1, tau = M ddq + C dq + G) over T samples at once, the gravity map G(q; g), and the
-end-effector payload regressors (Eq. 3/5 and the 10-parameter rigid body). Checked against dynamics.Robot (MuJoCo)."""
+end-effector payload regressors (Eqs. 4-5 and the 10-parameter rigid body). Checked against dynamics.Robot (MuJoCo)."""
 from __future__ import annotations
 
 import mujoco

@@ -1,4 +1,4 @@
-"""Constrained passive interaction control (CPIC, Sec. 3, Eqs. 6-7; Appendix B, D): DS motion policies, the passive
+"""Constrained passive interaction control (CPIC, Sec. 3, Eqs. 6-8; Appendix B, D): DS motion policies, the passive
 impedance law F_c = G_x - D(x)(xdot - f(x)), the exponential-CBF torque QP (solved by qp.py's dual active-set KKT
 solver) and the RME compensation hook. `python cpic.py` prints the benchmark."""
 from __future__ import annotations
@@ -73,7 +73,7 @@ class LimitCycle:
         return np.concatenate([[-self.gain_pos * e[0]], v_yz, f_w]), (V_pos, V_rot)
 
 
-# --- passive impedance law (Eq. 6; Kronander and Billard 2016) ----------------------------------------------
+# --- passive impedance law (Eq. 7; Kronander and Billard 2016) ----------------------------------------------
 def damping_matrix(f, eigenvalues):
     """D = Q Lambda Q^T (3, 3), Q = [e1 e2 e3] orthonormal with e1 = f / |f| (the world x axis when f = 0,
     where any basis keeps D f = lambda_1 f); eigenvalues (3,) = (lambda_1, lambda_2, lambda_3)."""
@@ -106,7 +106,7 @@ def _damp(f, eigenvalues, e):
     return l2 * e + ((l1 - l2) * float(f @ e) / ff) * f
 
 
-# --- the CPIC torque QP (Eq. 7, Appendix D) with the RME compensation hook (Eq. 4, Appendix B) -----------------
+# --- the CPIC torque QP (Eq. 8, Appendix D) with the RME compensation hook (Eq. 5, Appendix B) -----------------
 @dataclass(frozen=True)
 class CPICConfig:
     damping_pos: tuple = (150.0, 150.0, 150.0)  # N s/m, D eigenvalues (along f first); the lab's Franka passive-DS
@@ -189,7 +189,7 @@ class CPIC:
 
         tau_ext (n,), optional: the measured external torque (paper sign). None (default) = the nominal
         dynamics of Appendix B, ddq = M^-1 (tau - C dq - G), assuming the compensation cancels the mismatch.
-        Given, the E-CBF predicts ddq = M^-1 (tau + comp - C dq - G + tau_ext) as in Eq. 7's equality, so a
+        Given, the E-CBF predicts ddq = M^-1 (tau + comp - C dq - G + tau_ext) as in Eq. 8's equality, so a
         push is resisted at the limit (without it a push d [rad/s^2] can overshoot a limit by about d / k1).
         """
         G, dq, comp, f, V, F_c, tau_free, Hinv, g, b = self._terms(q, dq, compensation, tau_ext)

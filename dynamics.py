@@ -1,5 +1,5 @@
 """The arm's nominal rigid-body model on MuJoCo (Sec. 2, Eq. 1) and the payload terms the paper adds to it:
-tau_mm = J^T [F_m; r_w x F_m] (Eq. 3 and 5) with its regressor in phi = (m, m r), and the 10-parameter
+tau_mm = J^T [F_m; r_w x F_m] (Eqs. 4-5) with its regressor in phi = (m, m r), and the 10-parameter
 rigid-body payload regressor. Every function takes one state q (n,) or a window q (T, n)."""
 from __future__ import annotations
 
@@ -245,7 +245,7 @@ class Robot:
         J[:, 3:] = axes.transpose(0, 2, 1)
         return J, R, p
 
-    # --- payload terms (paper Eq. 3/5) ---------------------------------------------------------
+    # --- payload terms (paper Eqs. 4-5) ---------------------------------------------------------
     def payload_regressor(self, q):
         """Y (n, 4) / (T, n, 4) with tau_mm = Y phi, phi = (m, m rx, m ry, m rz), r in the ee frame.
 

@@ -1,4 +1,4 @@
-"""The physical effects a robot model is made of (issue 6; Eq. 1 split into parts, the paper's payload Eq. 3/5, and
+"""The physical effects a robot model is made of (issue 6; Eq. 1 split into parts, the paper's payload Eqs. 4-5, and
 the Sec. 6 limitations: friction, offsets, rotor inertia, a tilted base). Each is a regressor block linear in its
 parameters, in the sign of the measured joint torque tau_J, so masses and friction coefficients come out positive."""
 from __future__ import annotations
@@ -74,7 +74,7 @@ class Signals:
         return self._kin()["W"]
 
     @property
-    def payload(self):                       # (T, n, 4): tau_mm = Y phi (paper sign, Eq. 3/5)
+    def payload(self):                       # (T, n, 4): tau_mm = Y phi (paper sign, Eqs. 4-5)
         return self.cached("payload", lambda: self.batch.payload_regressor(self._kin(), self.robot.g))
 
     @property
@@ -243,7 +243,7 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
                lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False),
         Effect("motion", "the arm's inertial, Coriolis and centrifugal torques M(q) ddq + C(q, dq) dq, scaled by k_M",
                lambda s: s.motion[:, :, None], ("k_M",), ("(1 = nominal)",), nominal=1.0, signal="ddq", smooth=False),
-        Effect("payload", "a load at the end-effector whose weight pulls on the arm (static: Eq. 3/5, "
+        Effect("payload", "a load at the end-effector whose weight pulls on the arm (static: Eqs. 4-5, "
                "phi = (m, m r), r in the ee frame)", lambda s: -s.payload, ("m", "m_rx", "m_ry", "m_rz"),
                ("kg", "kg m", "kg m", "kg m"), payload=True, smooth=False),
         Effect("rigid_payload", "a rigid load at the end-effector: its weight and its inertia under motion "

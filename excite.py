@@ -28,7 +28,7 @@ class ExciteConfig:
     settle: float = 0.5                        # s, dropped from the start (5 time constants of the tracking loop)
 
 
-# slow sweeps: the payload's own motion torques stay below ~0.005 Nm, so a static payload model (Eq. 3/5) fits them
+# slow sweeps: the payload's own motion torques stay below ~0.005 Nm, so a static payload model (Eqs. 4-5) fits them
 QUASI_STATIC = ExciteConfig(speed=0.1, freq_scale=0.05)
 
 
@@ -138,7 +138,7 @@ def record_log(config: PlantConfig, seconds: float, rng: np.random.Generator, ex
 
 
 def payload_lstsq(robot: Robot, q, tau_ext) -> np.ndarray:
-    """theta = (m, r) (4,) from the least-squares phi of tau_ext (T, n) ~ payload_regressor(q) phi (paper Eq. 3/5)."""
+    """theta = (m, r) (4,) from the least-squares phi of tau_ext (T, n) ~ payload_regressor(q) phi (paper Eqs. 4-5)."""
     Y = robot.payload_regressor(q).reshape(-1, 4)
     phi = np.linalg.lstsq(Y, np.asarray(tau_ext).reshape(-1), rcond=None)[0]
     return np.concatenate([[phi[0]], phi[1:] / phi[0]])

@@ -1,5 +1,5 @@
 """Dense strictly convex QP min 1/2 x^T H x + g^T x s.t. A x >= b by Goldfarb and Idnani's dual active-set method
-on the KKT system (NumPy only, warm-startable): the solver of the CPIC torque QP (Sec. 3, Eq. 7; Appendix B, D).
+on the KKT system (NumPy only, warm-startable): the solver of the CPIC torque QP (Sec. 3, Eq. 8; Appendix B, D).
 cpic.py re-exports solve_qp; `python cpic.py` times it on the controller's own problems."""
 from __future__ import annotations
 

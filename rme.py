@@ -1,5 +1,5 @@
 """Rapid Mismatch Estimation, the pipeline (Sec. 4, Fig. 2): detector -> 200 ms window -> network prior ->
-variational inference -> compensation tau_comp = -J^T [F_hat; r_hat x F_hat] (Eq. 6). `python rme.py diagnose LOG`
+variational inference -> compensation tau_comp = -J^T [F_hat; r_hat x F_hat] (Eq. 5). `python rme.py diagnose LOG`
 compares the nominal model with a robot log and finds the missing physical effect (diagnose.py)."""
 from __future__ import annotations
 

@@ -52,7 +52,7 @@ def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, 
         while pending and pending[0][0] <= s.t:
             ctrl.policy = pending.pop(0)[1]
         comp = est.update(s.q, s.dq, s.tau_ext) if est is not None else None
-        tau, _ = ctrl.step(s.q, s.dq, comp, s.tau_ext)   # Eq. 7: the barriers see tau_ext
+        tau, _ = ctrl.step(s.q, s.dq, comp, s.tau_ext)   # Eq. 8: the barriers see tau_ext
         log["t"][k], log["q"][k], log["theta"][k] = s.t, s.q, plant.theta
         log["theta_hat"][k] = est.theta if est is not None else 0.0
         log["target"][k] = getattr(ctrl.policy, "p_star", getattr(ctrl.policy, "center", np.zeros(3)))

@@ -120,7 +120,7 @@ def test_unconstrained_qp_torque_equals_JT_Fc_plus_null_space_term(robot):
     D = np.zeros((6, 6))
     D[:3, :3] = 150.0 * np.eye(3) - 50.0 * np.outer(u, u)
     D[3:, 3:] = 5.0 * np.eye(3)
-    F_c = np.linalg.pinv(J).T @ G - D @ (J @ dq - f)                     # Eq. 6, G_x = J^+T G
+    F_c = np.linalg.pinv(J).T @ G - D @ (J @ dq - f)                     # Eq. 7, G_x = J^+T G
     N = np.eye(7) - np.linalg.pinv(J) @ J
     assert np.allclose(info.F_c, F_c, atol=1e-9)
     assert np.allclose(info.tau_qp, J.T @ F_c + N @ (G - 1.0 * dq), atol=1e-8)

@@ -241,7 +241,7 @@ def test_correction_improves_a_least_squares_payload_estimate():
                                payload=(theta[0], theta[1:], None)))
     before = payload_lstsq(ROBOT, sweep.q, sweep.tau_ext)
     after = payload_lstsq(ROBOT, sweep.q, sweep.tau_ext - d.model.correction(sweep.q, sweep.dq, sweep.ddq))
-    Y = ROBOT.payload_regressor(sweep.q)                             # (T, 7, 4): the payload torque, Eq. 3/5
+    Y = ROBOT.payload_regressor(sweep.q)                             # (T, 7, 4): the payload torque, Eqs. 4-5
     phi = lambda th: np.concatenate([[th[0]], th[0] * th[1:]])
     torque_err = lambda th: np.sqrt(np.mean((Y @ (phi(th) - phi(theta))) ** 2))
     assert abs(after[0] - theta[0]) < 0.01 < abs(before[0] - theta[0]), (before, after)

@@ -1,4 +1,4 @@
-"""Mean-field Gaussian variational inference of the payload theta = (m, rx, ry, rz) (Sec. 4.2, Eqs. 2, 7-11):
+"""Mean-field Gaussian variational inference of the payload theta = (m, rx, ry, rz) (Sec. 4.2, Eqs. 9-10, 14-18):
 -ELBO by the reparameterisation trick with hand-written gradients through tau_mm = Y(q) phi(theta),
 phi = (m, m rx, m ry, m rz); Adam with global-norm clipping, stopped when mu and sigma settle."""
 from __future__ import annotations
