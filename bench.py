@@ -131,8 +131,8 @@ def tables(n_datasets=100, trials=10, seed=0, log=print):
             "table1_first": t1_first, "table4_first": t4_first, "table1_detected": int(detected),
             "table1_at_rest": int(sum(d["at_rest"] for d in data)),
             "estimate_ms_median": float(np.median(secs) * 1e3),
-            "attach_to_compensation_ms_median": float(np.nanmedian(latencies)),
-            "attach_to_compensation_ms_all": [float(x) for x in latencies],
+            "attach_to_compensation_ms_median": float(np.nanmedian(latencies)) if np.isfinite(latencies).any() else None,
+            "attach_to_compensation_ms_all": [None if np.isnan(x) else float(x) for x in latencies],   # None: missed
             "settings": {"datasets": n_datasets, "trials": trials, "seed": seed, "preset": "realistic"}}
 
 

@@ -120,7 +120,7 @@ class Robot:
         T = first.shape[0]
         for a, _ in rest:
             if a.shape[0] != T:
-                raise ValueError(f"expected arrays with the same number of rows, found {T} and {a.shape[0]}")
+                raise ValueError(f"q, dq, ddq: expected the same number of rows (T), found {T} and {a.shape[0]}")
         out = np.stack([fn(*(a[t] for a, _ in arrays)) for t in range(T)])
         return out if batched else out[0]
 
@@ -223,7 +223,7 @@ class Robot:
             R = R @ Rb
             if jnt >= 0:
                 dof, a_loc, c_loc = m.jnt_dofadr[jnt], m.jnt_axis[jnt], m.jnt_pos[jnt]
-                angle = q[:, m.jnt_qposadr[jnt]]
+                angle = q[:, m.jnt_qposadr[jnt]] - m.qpos0[m.jnt_qposadr[jnt]]   # MuJoCo turns by q - ref
                 anchor = p + R @ c_loc if c_loc.any() else p                  # (T, 3)
                 if a_loc[0] == 0.0 and a_loc[1] == 0.0 and a_loc[2] > 0.0:    # about the body z axis (DH arms)
                     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]

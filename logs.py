@@ -71,15 +71,24 @@ def load_log(path, config: LogConfig = LogConfig()) -> Log:
 def read_npz(path) -> dict:
     """Raw arrays of an .npz log: t, q, dq, optional ddq, tau_J and/or tau_ext (converted to the paper's sign using
     the optional key tau_ext_sign, default "paper"; a key tau_ext_hat_filtered is taken as libfranka's sign)."""
-    with np.load(path, allow_pickle=False) as z:
-        raw = {k: np.asarray(z[k], dtype=float) for k in ("t", "q", "dq", "ddq", "tau_J") if k in z}
+    try:
+        z = np.load(path, allow_pickle=False)
+    except Exception as err:                       # empty, truncated, not a zip, pickled objects ...
+        raise ValueError(f"path: could not read the log {path!r} as .npz: {type(err).__name__}: {err}") from None
+    with z:
+        def column(k):
+            try:
+                return np.asarray(z[k], dtype=float)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{k}: expected numbers in {path!r}, found {z[k].dtype} ({err})") from None
+        raw = {k: column(k) for k in ("t", "q", "dq", "ddq", "tau_J") if k in z}
         sign = str(z["tau_ext_sign"]) if "tau_ext_sign" in z else "paper"
         if sign not in SIGNS:
             raise ValueError(f"tau_ext_sign: expected one of {SIGNS}, found {sign!r}")
         if "tau_ext" in z:
-            raw["tau_ext"] = np.asarray(z["tau_ext"], dtype=float) * (1.0 if sign == "paper" else -1.0)
+            raw["tau_ext"] = column("tau_ext") * (1.0 if sign == "paper" else -1.0)
         elif "tau_ext_hat_filtered" in z:
-            raw["tau_ext"] = -np.asarray(z["tau_ext_hat_filtered"], dtype=float)
+            raw["tau_ext"] = -column("tau_ext_hat_filtered")
     return raw
 
 
@@ -92,6 +101,9 @@ def read_csv(path) -> dict:
     if not header:
         raise ValueError(f"csv: expected a header row in {path!r}, found an empty file")
     names = [h.strip() for h in header]
+    with open(path, newline="") as f:
+        if sum(1 for line in f if line.strip()) < 2:
+            raise ValueError(f"log: expected data rows, found none (a header only) in {path!r}")
     try:                                       # fast path; genfromtxt reads empty or bad cells as NaN
         body = np.loadtxt(path, delimiter=",", skiprows=1, dtype=float, ndmin=2)
     except ValueError:
@@ -187,6 +199,8 @@ def _check_raw(raw):
     t = out["t"] = out["t"].reshape(-1) if out["t"].ndim == 2 and 1 in out["t"].shape else out["t"]
     if t.ndim != 1:
         raise ValueError(f"t: expected shape (T,), found {t.shape}")
+    if len(t) == 0:
+        raise ValueError("log: expected data rows, found none (a header or empty arrays only)")
     if out["q"].ndim != 2 or out["q"].shape[1] < 1:
         raise ValueError(f"q: expected shape (T, n), found {out['q'].shape}")
     n = out["q"].shape[1]

@@ -40,6 +40,20 @@ class RMESettings:
     vi: vi.VISettings = field(default_factory=vi.VISettings)
     detector: DetectorSettings = field(default_factory=DetectorSettings)
 
+    def __post_init__(self):
+        keep, settled = self.detector.window, self.detector.settled_window[1]
+        checks = [("window", self.window, 20 <= self.window <= keep, f"20..{keep} samples (the detector's window)"),
+                  ("reference", self.reference, 1 <= self.reference <= settled,
+                   f"1..{settled} samples (the detector checks those precede the change)"),
+                  ("rate", self.rate, self.rate > 0, "a rate > 0 Hz"),
+                  ("max_mass", self.max_mass, self.max_mass > 0, "a mass > 0 kg"),
+                  ("min_explained", self.min_explained, self.min_explained <= 1, "a share <= 1"),
+                  ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
+                  ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s")]
+        for name, value, ok, want in checks:
+            if not ok or (isinstance(value, float) and np.isnan(value)):
+                raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
+
 
 @dataclass
 class Estimate:
@@ -55,7 +69,7 @@ class Estimate:
     t: float = float("nan")        # stream time of the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection", "at rest" (the estimate once the arm is still) or "window"
+    kind: str = "window"             # "detection", "at rest" (once the arm is still), "at deadline" or "window"
 
 
 class RME:
@@ -68,10 +82,10 @@ class RME:
         self.settings, self.correction = settings, correction
         self.rng = np.random.default_rng(0) if rng is None else rng
         self.net = self._load_network(weights) if settings.use_network else None
-        self.detector = Detector(settings.detector)
+        if not isinstance(settings, RMESettings):
+            raise ValueError(f"settings: expected an RMESettings, found {type(settings).__name__}")
+        self.detector = Detector(settings.detector, n=self.robot.n)
         n, keep = self.robot.n, settings.detector.window
-        if settings.window > keep:
-            raise ValueError(f"settings.window: expected at most the detector's window {keep}, found {settings.window}")
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
         self._k = 0                                    # samples seen
         self.theta = np.zeros(4)                       # the estimate being compensated
@@ -120,6 +134,8 @@ class RME:
         _, R, J = self.robot.kinematics(q)                     # one forward-kinematics pass for the window
         Y = self.robot.payload_regressor_from(J, R)
         prior = self.net.predict_window(self.robot, q, tau, (R, J)) if self.net is not None else np.zeros(4)
+        if not np.all(np.isfinite(prior)):             # the network overflowed on absurd torques: no prior mean
+            prior = np.zeros(4)
         post = vi.fit(Y, tau, prior, self.settings.vi, self.rng)
         seconds = time.perf_counter() - start
         return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), seconds, post.iterations,
@@ -143,20 +159,21 @@ class RME:
         Y = self.robot.payload_regressor_from(J, R)
         tau_mm = Y @ _phi(self.theta)
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
-        fired = self.detector.update(r, pseudo_force(J, r)) and self._k >= keep
+        fired = self.detector.update(r, pseudo_force(J, r, self.settings.detector.lam)) and self._k >= keep
         if fired and self._refine is None:
             self._on_detection()
         # while an estimate at rest is pending, the arm is still moving in answer to the last compensation and the
-        # detector's reference is not settled; the estimate at rest will include any change meanwhile (ours)
+        # detector's reference is not settled: detections are ignored, and the estimate at rest (or, if the arm
+        # never rests, the one at the deadline) covers any change meanwhile, being referred to before the change
         self._still = self._still + 1 if np.abs(dq).max() < self.settings.rest_speed else 0
         if self._refine is not None and self._pending is None:
-            if self._k > self._refine["deadline"]:
-                self._refine = None
-            elif self._still >= self.settings.window:
-                self._on_rest()
+            if self._still >= self.settings.window:
+                self._on_rest("at rest")
+            elif self._k > self._refine["deadline"]:
+                self._on_rest("at deadline")
         if self._pending is not None and self._k >= self._pending[0]:
             self.theta = _safe_theta(self._pending[1].mean, self.theta, self.settings.max_mass)
-            self._pending = None
+            self._pending, self._still = None, 0         # the arm answers the new compensation: wait for rest again
             tau_mm = Y @ _phi(self.theta)
         return np.clip(-tau_mm, -self._limit, self._limit)
 
@@ -180,14 +197,15 @@ class RME:
         if e.accepted and s.refine:
             self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
 
-    def _on_rest(self):
+    def _on_rest(self, kind):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
-        friction no longer holds part of the load, and the arm is back near the pose it had before the change."""
+        friction no longer holds part of the load, and the arm is back near the pose it had before the change. If it
+        never rests within refine_within, estimate at the deadline so that no change in between is lost."""
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU = self._buffer()
-        if self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest").accepted:
-            self.detector.reset()           # the residual it watches steps with the new estimate: not a load change
+        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], kind)
+        self.detector.reset()               # its reference predates the estimate: start a fresh window
 
     def _change(self, Qw, Tw, theta_before, kind) -> Estimate:
         """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted."""

@@ -53,6 +53,20 @@ class PlantConfig:
     observer: str = "exact"                # "exact": model(q, dq, ddq) - tau_J; "momentum": momentum observer
     observer_gain: float = 100.0           # 1/s, momentum observer bandwidth
 
+    def __post_init__(self):
+        for name in ("tau_noise", "tau_step", "bias_amp", "torque_offset", "mass_scale", "viscous", "coulomb",
+                     "armature"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != (N,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"config.{name}: expected {N} finite values, found {getattr(self, name)!r}")
+        if np.asarray(self.com_shift, dtype=float).shape != (N, 3):
+            raise ValueError(f"config.com_shift: expected ({N}, 3) values, found {self.com_shift!r}")
+        if self.friction_sigmoid is not None and np.asarray(self.friction_sigmoid, dtype=float).shape != (3, N):
+            raise ValueError(f"config.friction_sigmoid: expected (p1, p2, p3), each {N} values, found "
+                             f"{self.friction_sigmoid!r}")
+        if not 0.0 <= self.stale_prob < 1.0:
+            raise ValueError(f"config.stale_prob: expected a probability in [0, 1), found {self.stale_prob}")
+
     @staticmethod
     def ideal() -> "PlantConfig":
         """The plant is the nominal model and its sensors are perfect: exact tests."""
@@ -157,16 +171,7 @@ class Plant:
     def set_payload(self, m, r=(0.0, 0.0, 0.0), inertia=None):
         """Fix a payload of mass m [kg] with CoM r (3,) [m] in the ee frame and, optionally, inertia (3, 3)
         about its CoM in the ee frame (default: a point mass). m = 0 removes the payload."""
-        r = np.asarray(r, dtype=float)
-        if not np.isfinite(m) or m < 0:
-            raise ValueError(f"m: expected a finite mass >= 0 kg, found {m}")
-        if r.shape != (3,) or not np.all(np.isfinite(r)):
-            raise ValueError(f"r: expected a finite CoM of shape (3,), found {r}")
-        I = np.zeros((3, 3)) if inertia is None else np.asarray(inertia, dtype=float)
-        if I.shape == (6,):
-            I = inertia_matrix(I)
-        if I.shape != (3, 3) or not np.allclose(I, I.T) or np.linalg.eigvalsh(I).min() < -1e-12:
-            raise ValueError(f"inertia: expected a symmetric positive semi-definite (3, 3), found {I.tolist()}")
+        m, r, I = _check_payload(m, r, inertia)
         md, b = self.model, self.payload_body
         w, V = np.linalg.eigh(I)
         if np.linalg.det(V) < 0:
@@ -180,8 +185,11 @@ class Plant:
         self.theta = np.array([m, *r])
 
     def schedule_payload(self, t, m, r=(0.0, 0.0, 0.0), inertia=None):
-        """Change the payload at simulation time t [s] (m = 0 removes it)."""
-        self._events.append((float(t), (m, tuple(r), inertia)))
+        """Change the payload at simulation time t [s] (m = 0 removes it); checked now, applied then."""
+        if not np.isfinite(t):
+            raise ValueError(f"t: expected a finite time in s, found {t}")
+        m, r, inertia = _check_payload(m, r, inertia)
+        self._events.append((float(t), (m, r, inertia)))
         self._events.sort(key=lambda e: e[0])
 
     def push(self, force, body="link7", offset=(0.0, 0.0, 0.0), start=0.0, duration=0.5):
@@ -192,6 +200,11 @@ class Plant:
         bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, body)
         if bid < 0:
             raise ValueError(f"body: no body named {body!r} in the plant")
+        o = np.asarray(offset, dtype=float)
+        if o.shape != (3,) or not np.all(np.isfinite(o)):
+            raise ValueError(f"offset: expected a finite point (3,) in the body frame, found {offset}")
+        if not (np.isfinite(start) and np.isfinite(duration) and duration >= 0):
+            raise ValueError(f"start, duration: expected finite times, duration >= 0, found {start}, {duration}")
         self._pushes.append(_Push(f, bid, np.asarray(offset, float), float(start), float(start + duration)))
 
     # --- stepping ------------------------------------------------------------------------------
@@ -204,7 +217,8 @@ class Plant:
         tau = np.asarray(tau, dtype=float)
         if tau.shape != (N,):
             raise ValueError(f"tau: expected shape ({N},), found {tau.shape}")
-        tau = np.where(np.isfinite(tau), tau, 0.0)     # a NaN command is not applied (the drive would fault)
+        if not np.all(np.isfinite(tau)):
+            raise ValueError(f"tau: expected finite torques, found {tau.tolist()} (a real drive would fault)")
         return self._advance(np.clip(tau, -self.tau_max, self.tau_max), integrate=True)
 
     def _advance(self, tau, integrate):
@@ -304,6 +318,25 @@ class Plant:
         self._wall = now - self.data.time if self._wall is None else self._wall
         time.sleep(max(0.0, self._wall + self.data.time - now))   # real time
         self.viewer.sync()
+
+
+def _check_payload(m, r, inertia):
+    """(m, r (3,), I (3, 3) about the CoM in the ee frame) checked; inertia None = point mass, (6,) = pinocchio order."""
+    try:
+        m = float(m)
+    except (TypeError, ValueError):
+        raise ValueError(f"m: expected a mass in kg, found {m!r}") from None
+    if not np.isfinite(m) or m < 0:
+        raise ValueError(f"m: expected a finite mass >= 0 kg, found {m}")
+    r = np.asarray(r, dtype=float)
+    if r.shape != (3,) or not np.all(np.isfinite(r)):
+        raise ValueError(f"r: expected a finite CoM of shape (3,) in m, found {r.tolist()}")
+    I = np.zeros((3, 3)) if inertia is None else np.asarray(inertia, dtype=float)
+    if I.shape == (6,):
+        I = inertia_matrix(I)
+    if I.shape != (3, 3) or not np.all(np.isfinite(I)) or not np.allclose(I, I.T) or np.linalg.eigvalsh(I).min() < -1e-12:
+        raise ValueError(f"inertia: expected a symmetric positive semi-definite (3, 3), found {I.tolist()}")
+    return m, r, I
 
 
 def _needs_rng(c: PlantConfig) -> bool:

@@ -143,6 +143,14 @@ def test_bad_logs_raise_errors_naming_the_problem(tmp_path):
     short = Log(t[:400], q[:400], q[:400], q[:400], q[:400], None, {})
     with pytest.raises(ValueError, match="too short to diagnose"):
         D.diagnose(Model.nominal(ROBOT), short)
+    (tmp_path / "empty.npz").write_bytes(b"")
+    (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04junk")
+    for name in ("empty.npz", "junk.npz"):
+        with pytest.raises(ValueError, match=r"path: could not read the log .* as .npz"):
+            load_log(tmp_path / name)
+    (tmp_path / "header_only.csv").write_text(header.replace("time,", "time,dq[3],") + "\n")
+    with pytest.raises(ValueError, match="log: expected data rows, found none"):
+        load_log(tmp_path / "header_only.csv")
 
 
 # --- diagnose on simulated logs with one hidden effect ---------------------------------------------------

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from dynamics import Robot, skew
+from rme import RME, RMESettings
 from sim import N, Q_READY, JointHold, Plant, PlantConfig, record
 
 ROBOT = Robot.panda()
@@ -197,18 +198,28 @@ def test_from_xml_works_on_a_three_joint_planar_arm(tmp_path):
     (lambda: Plant(PlantConfig.ideal()).step(np.zeros(3)), r"tau: expected shape \(7,\)"),
     (lambda: Plant(PlantConfig.ideal()).set_payload(-1.0), r"m: expected a finite mass >= 0"),
     (lambda: Plant(PlantConfig.realistic(np.random.default_rng(0))), r"rng: a np.random.Generator is needed"),
+    (lambda: Plant(PlantConfig.ideal()).schedule_payload(np.nan, 1.0), r"t: expected a finite time"),
+    (lambda: Plant(PlantConfig.ideal()).schedule_payload(0.1, 1.0, r=0.1), r"r: expected a finite CoM of shape"),
+    (lambda: Plant(PlantConfig.ideal()).set_payload("heavy"), r"m: expected a mass in kg"),
+    (lambda: Plant(PlantConfig.ideal()).push([0, 10.0, 0], offset=(1, 2)), r"offset: expected a finite point"),
+    (lambda: PlantConfig(mass_scale=(1.0,) * 6), r"config.mass_scale: expected 7 finite values"),
+    (lambda: RMESettings(reference=600), r"settings.reference: expected 1..30 samples"),
+    (lambda: RMESettings(rate=0.0), r"settings.rate: expected a rate > 0"),
+    (lambda: RMESettings(window=10), r"settings.window: expected 20..500 samples"),
 ])
 def test_bad_input_raises_value_error_naming_the_argument(call, match):
     with pytest.raises(ValueError, match=match):
         call()
 
 
-def test_plant_clips_torques_and_never_applies_nan():
+def test_plant_clips_torques_and_refuses_nan():
     plant = Plant(PlantConfig.ideal())
     plant.reset(Q_READY)
-    s = plant.step(np.array([200.0, -200.0, 0.0, 0.0, 50.0, -50.0, np.nan]))
-    np.testing.assert_array_equal(s.tau_J, [87.0, -87.0, 0.0, 0.0, 12.0, -12.0, 0.0])
+    s = plant.step(np.array([200.0, -200.0, 0.0, 0.0, 50.0, -50.0, 1.0]))
+    np.testing.assert_array_equal(s.tau_J, [87.0, -87.0, 0.0, 0.0, 12.0, -12.0, 1.0])
     assert np.all(np.isfinite(s.q)) and np.all(np.isfinite(s.tau_ext))
+    with pytest.raises(ValueError, match=r"tau: expected finite torques"):
+        plant.step(np.array([0.0] * 6 + [np.nan]))
 
 
 def test_scheduled_payload_appears_in_tau_ext_at_its_time_and_leaves_on_removal():
@@ -306,7 +317,6 @@ def test_plant_differs_from_nominal_in_realistic_preset_only():
 
 
 # --- the RME pipeline (rme.py) ----------------------------------------------------------------------------
-from rme import RME, RMESettings            # noqa: E402  (grouped with the tests that use it)
 
 
 def static_window(theta, seed, delay=0.25):
@@ -438,3 +448,33 @@ def test_baseline_is_subtracted_before_estimating():
     np.testing.assert_allclose(a.mean, b.mean, atol=1e-9)
     c = RME(rng=np.random.default_rng(1)).estimate(q, tau + offset)
     assert np.abs(c.mean - a.mean).max() > 1e-3                # without it the offset does change the estimate
+
+
+def test_window_kinematics_respect_a_joint_reference_angle(tmp_path):
+    path = tmp_path / "arm3_ref.xml"
+    path.write_text(THREE_LINK.replace('<joint name="j2" type="hinge" axis="0 1 0"/>',
+                                       '<joint name="j2" type="hinge" axis="0 1 0" ref="0.5"/>'))
+    arm = Robot.from_xml(path, ee="tip")
+    Q = np.random.default_rng(12).uniform(-1, 1, (5, 3))
+    np.testing.assert_allclose(arm.ee_pose(Q)[0], np.stack([arm.ee_pose(q)[0] for q in Q]), atol=1e-12)
+    np.testing.assert_allclose(arm.payload_regressor(Q), np.stack([arm.payload_regressor(q) for q in Q]), atol=1e-12)
+
+
+def test_streaming_works_for_another_arm_and_keeps_a_change_made_while_the_arm_moves(tmp_path):
+    """A 3-joint arm streams exact payload torques while joint 1 keeps turning (it never rests): a load at 1.0 s and a
+    heavier one at 1.8 s, while the estimate at rest of the first is still pending; the second must not be lost."""
+    path = tmp_path / "arm3.xml"
+    path.write_text(THREE_LINK)
+    arm = Robot.from_xml(path, ee="tip")
+    est = RME(arm, weights=None, settings=RMESettings(asynchronous=False), rng=np.random.default_rng(0))
+    noise = np.random.default_rng(1)
+    for k in range(4000):
+        t = k / 1000
+        q = np.array([0.3 + 0.05 * t, -0.4, 0.6])                # 0.05 rad/s on joint 1, never still
+        theta = [1.2, 0.05, 0.0, 0.0] if t >= 1.8 else ([0.5, 0.05, 0.0, 0.0] if t >= 1.0 else [0.0, 0, 0, 0])
+        tau = arm.payload_torque(q, theta) + 0.01 * noise.normal(size=3)
+        comp = est.update(q, np.array([0.05, 0.0, 0.0]), tau)
+        assert np.all(np.isfinite(comp))
+    kinds = [e.kind for e in est.history]
+    assert kinds[0] == "detection" and "at deadline" in kinds
+    assert abs(est.theta[0] - 1.2) < 0.05                     # the later, heavier load is what is compensated
