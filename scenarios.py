@@ -73,7 +73,8 @@ def print_estimates(log, label="RME"):
         applied = np.flatnonzero((t >= e.t) & np.all(np.isclose(log["theta_hat"], _clipped(e.mean)), axis=1))
         when = (f"applied at {t[applied[0]]:.3f} s" if len(applied) and e.accepted else
                 f"rejected: explains only {100 * e.explained:.0f} % of the change (not a load)")
-        what = "detects a change" if e.kind == "detection" else "estimates again, arm at rest"
+        what = {"detection": "detects a change", "at rest": "estimates again, arm at rest"}.get(
+            e.kind, "estimates again, the arm did not come to rest")
         print(f"  {e.t:6.3f} s  {label} {what}; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m  [truth m = {theta[k, 0]:.3f}, "
               f"r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  {e.seconds * 1e3:.1f} ms, {when}")
