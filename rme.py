@@ -70,6 +70,7 @@ class Estimate:
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
     kind: str = "window"             # "detection", "at rest" (once the arm is still), "at deadline" or "window"
+    applied: float = float("nan")    # stream time the compensation started using it (update only)
 
 
 class RME:
@@ -89,6 +90,7 @@ class RME:
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
         self._k = 0                                    # samples seen
         self.theta = np.zeros(4)                       # the estimate being compensated
+        self._phi = np.zeros(4)                        # its phi = (m, m r), kept with it for the 1 kHz loop
         self._pending = None                           # (sample index when it applies, Estimate)
         self._refine, self._still = None, 0            # a pending estimate at rest; samples the arm has been still
         self.history: list[Estimate] = []
@@ -157,7 +159,7 @@ class RME:
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
         _, R, J = self.robot.kinematics(q)                            # one kinematics pass per sample
         Y = self.robot.payload_regressor_from(J, R)
-        tau_mm = Y @ _phi(self.theta)
+        tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         fired = self.detector.update(r, pseudo_force(J, r, self.settings.detector.lam)) and self._k >= keep
         if fired and self._refine is None:
@@ -173,8 +175,10 @@ class RME:
                 self._on_rest("at deadline")
         if self._pending is not None and self._k >= self._pending[0]:
             self.theta = _safe_theta(self._pending[1].mean, self.theta, self.settings.max_mass)
+            self._phi = vi.phi_of(self.theta)
+            self._pending[1].applied = self._k / self.settings.rate
             self._pending, self._still = None, 0         # the arm answers the new compensation: wait for rest again
-            tau_mm = Y @ _phi(self.theta)
+            tau_mm = Y @ self._phi
         return np.clip(-tau_mm, -self._limit, self._limit)
 
     def _buffer(self):
@@ -192,7 +196,7 @@ class RME:
         Q, TAU = self._buffer()
         q_ref, tau_ref = Q[:s.reference], TAU[:s.reference]
         # bias = what the previous estimate does not explain before the change: tau_ref - tau_mm(q_ref, theta_prev)
-        bias = (tau_ref - self.robot.payload_regressor(q_ref) @ _phi(self.theta)).mean(axis=0)
+        bias = (tau_ref - self.robot.payload_regressor(q_ref) @ self._phi).mean(axis=0)
         e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection")
         if e.accepted and s.refine:
             self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
@@ -212,18 +216,14 @@ class RME:
         s, k = self.settings, self._k
         e, Y = self._estimate(Qw, Tw)
         e.t, e.kind = k / s.rate, kind
-        before = np.sum((Tw - Y @ _phi(theta_before)) ** 2)        # what the old estimate leaves unexplained
-        e.explained = 1.0 - np.sum((Tw - Y @ _phi(e.mean)) ** 2) / before
+        before = np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2)        # what the old estimate leaves unexplained
+        e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
         e.accepted = bool(e.explained >= s.min_explained)
         self.history.append(e)
         if e.accepted:
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
             self._pending = (k + delay, e)
         return e
-
-
-def _phi(theta):
-    return np.concatenate([[theta[0]], theta[0] * theta[1:]])
 
 
 def _safe_theta(new, old, max_mass):

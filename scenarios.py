@@ -70,18 +70,13 @@ def print_estimates(log, label="RME"):
         print(f"  {label} detected no change")
     for e in log["history"]:
         k = min(np.searchsorted(t, e.t), len(t) - 1)
-        applied = np.flatnonzero((t >= e.t) & np.all(np.isclose(log["theta_hat"], _clipped(e.mean)), axis=1))
-        when = (f"applied at {t[applied[0]]:.3f} s" if len(applied) and e.accepted else
+        when = (f"applied at {e.applied:.3f} s" if e.accepted else
                 f"rejected: explains only {100 * e.explained:.0f} % of the change (not a load)")
         what = {"detection": "detects a change", "at rest": "estimates again, arm at rest"}.get(
             e.kind, "estimates again, the arm did not come to rest")
         print(f"  {e.t:6.3f} s  {label} {what}; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m  [truth m = {theta[k, 0]:.3f}, "
               f"r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  {e.seconds * 1e3:.1f} ms, {when}")
-
-
-def _clipped(mean):
-    return np.array([min(max(mean[0], 0.0), 3.0), *np.clip(mean[1:], -1.0, 1.0)])
 
 
 def error_mm(log, reference=None):
