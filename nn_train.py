@@ -56,10 +56,9 @@ def simulate_episode(q0, theta, delays, rng, cfg=DataConfig()):
 
     Returns q (k, window, 7) and tau_ext (k, window, 7) - mean(tau_ext over t_ref before the change),
     one per delay (s after the change). Simulates only up to the end of the last window."""
-    from sim import Plant, PlantConfig
+    from sim import JointHold, Plant, PlantConfig
     plant = Plant(PlantConfig.realistic(rng), rng=rng)
-    robot, dt = plant.robot, plant.dt
-    kp, kd = np.asarray(cfg.hold_kp), np.asarray(cfg.hold_kd)
+    dt, hold = plant.dt, JointHold(plant.robot, q0, cfg.hold_kp, cfg.hold_kd)     # gravity + PD hold
     i_change = int(round(cfg.t_change / dt))
     starts = i_change + np.round(np.asarray(delays) / dt).astype(int)
     n_steps = int(starts.max()) + cfg.window
@@ -67,7 +66,7 @@ def simulate_episode(q0, theta, delays, rng, cfg=DataConfig()):
     s = plant.reset(q0)
     Q, T = np.empty((n_steps, 7)), np.empty((n_steps, 7))
     for i in range(n_steps):                     # sample i is at time (i + 1) dt
-        s = plant.step(robot.gravity(s.q) + kp * (q0 - s.q) - kd * s.dq)    # gravity + PD hold
+        s = plant.step(hold(s))
         Q[i], T[i] = s.q, s.tau_ext
     i_ref = i_change - int(round(cfg.t_ref / dt))
     ref = T[i_ref - 1:i_change - 1].mean(0)      # samples at times in [t_change - t_ref, t_change)
