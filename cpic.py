@@ -1,15 +1,15 @@
 """Constrained passive interaction control (CPIC, Sec. 3, Eqs. 6-8; Appendix B, D): DS motion policies, the passive
 impedance law F_c = G_x - D(x)(xdot - f(x)), the exponential-CBF torque QP (solved by qp.py's dual active-set KKT
-solver) and the RME compensation hook. `python cpic.py` prints the benchmark."""
+solver) and the RME compensation hook; and JointHold, a plain joint PD hold for recording data."""
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from qp import QPInfo, dual_active_set, solve_qp   # noqa: F401  (re-exported: cpic.solve_qp is the issue's name)
+from dynamics import Robot, as_states
+from qp import QPInfo, dual_active_set, solve_qp   # noqa: F401  (re-exported: cpic.solve_qp)
 
 
 # --- motion policies f(x) with their Lyapunov functions V(x) (Sec. 3, Eq. 6) ---------------------------------
@@ -284,72 +284,16 @@ def storage(dq, M, V, config: CPICConfig):
     return 0.5 * dq @ M @ dq + config.damping_pos[0] * V[0] + config.damping_rot[0] * V[1]
 
 
-def run_closed_loop(plant, ctrl, first, seconds, compensation=None, use_tau_ext=False):
-    """Run ctrl on a sim.Plant for `seconds` from the Sample `first`. compensation: None or a callable
-    (t, q) -> (n,) torque or None (e.g. -robot.payload_torque(q, theta_hat) once an estimate exists).
-    Returns arrays t (T,), q, dq (T, n) as the controller saw them, its tau (T, n), V (T, 2), fallback (T,)."""
-    s, steps, n = first, int(round(seconds / plant.dt)), ctrl.robot.n
-    log = {"t": np.empty(steps), "q": np.empty((steps, n)), "dq": np.empty((steps, n)),
-           "tau": np.empty((steps, n)), "V": np.empty((steps, 2)), "fallback": np.zeros(steps, dtype=bool)}
-    for k in range(steps):
-        comp = None if compensation is None else compensation(s.t, s.q)
-        tau, info = ctrl.step(s.q, s.dq, comp, s.tau_ext if use_tau_ext else None)
-        log["t"][k], log["q"][k], log["dq"][k] = s.t, s.q, s.dq
-        log["tau"][k], log["V"][k], log["fallback"][k] = tau, info.V, info.fallback
-        s = plant.step(tau)
-    return log
+class JointHold:
+    """A stiff joint-space hold, tau = G(q) + Kp (q0 - q) - Kd dq (+ compensation) on the nominal model: the simple
+    controller used for recording data (CPIC above is the paper's controller). Gains: ours, stiff enough that a
+    3 kg load moves the arm by a few mrad."""
 
+    def __init__(self, robot: Robot, q0, kp=(600.0,) * 4 + (50.0,) * 3, kd=(40.0,) * 4 + (4.0,) * 3):
+        self.robot, self.q0 = robot, as_states("q0", q0, robot.n, allow_window=False)[0][0]
+        self.kp, self.kd = np.asarray(kp, dtype=float), np.asarray(kd, dtype=float)
 
-def benchmark(seconds=0.6, repeats=7):
-    """Median microseconds of solve_qp on the controller's own QPs, recorded in a simulated hold (a 5 cm / 0.3 rad
-    pose step that drives wrist joints into their E-CBF constraints, a 0.9 kg payload at 0.2 s, a 42 N push from
-    0.3 s to 0.5 s), split by whether constraints are active, and of one full ctrl.step (model terms + QP).
-    Every timing key ends in "_us" (the lead's table in bench.py collects those)."""
-    from sim import Plant, PlantConfig, Q_READY       # the plant is only needed here
-    plant = Plant(PlantConfig.ideal())
-    robot, s = plant.robot, plant.reset(Q_READY)
-    p0, R0 = robot.ee_pose(Q_READY)
-    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.3), -np.sin(0.3)], [0.0, np.sin(0.3), np.cos(0.3)]])
-    ctrl = CPIC(robot, Attractor(p0 + np.array([0.05, -0.05, 0.05]), tilt @ R0))
-    plant.schedule_payload(0.2, 0.9, (0.05, -0.03, 0.13))
-    plant.push(np.array([0.0, 30.0, -30.0]), start=0.3, duration=0.2)
-    problems, states = [], []
-    for _ in range(int(round(seconds / plant.dt))):
-        problems.append(ctrl.qp(s.q, s.dq))
-        states.append((s.q, s.dq))
-        s = plant.step(ctrl.step(s.q, s.dq)[0])
-
-    def best_us(calls, before=None):
-        """Per call, the fastest of `repeats` whole passes over all calls (a burst of load on the shared machine
-        hits one pass, not every repeat of a few neighbouring calls); before() runs ahead of each pass."""
-        best = np.full(len(calls), np.inf)
-        for _ in range(repeats):
-            if before is not None:
-                before()
-            for k, call in enumerate(calls):
-                t0 = time.perf_counter()
-                call()
-                best[k] = min(best[k], 1e6 * (time.perf_counter() - t0))
-        return best
-
-    qp_us = best_us([lambda P=P: solve_qp(*P) for P in problems])
-    active = np.array([len(solve_qp(*P)[1].active) > 0 for P in problems])
-    inverses = [np.linalg.inv(P[0]) for P in problems]             # the loop has H^-1 in closed form
-    loop_us = best_us([lambda P=P, Hi=Hi, W=P[4].tolist():
-                       dual_active_set(np.linalg.cholesky(Hi).T, P[1], P[2], P[3], W, 100)
-                       for P, Hi in zip(problems, inverses)])
-    # steps in order from a reset: the warm start the loop sees
-    step_us = best_us([lambda q=q, dq=dq: ctrl.step(q, dq) for q, dq in states], before=ctrl.reset)
-    model_us = best_us([lambda q=q, dq=dq: robot.control_terms(q, dq) for q, dq in states[::10]])
-    return {"problems": len(problems), "fraction_with_active_constraints": float(active.mean()),
-            "solve_qp_median_us": float(np.median(qp_us)),
-            "solve_qp_none_active_median_us": float(np.median(qp_us[~active])),
-            "solve_qp_some_active_median_us": float(np.median(qp_us[active])),
-            "in_loop_qp_some_active_median_us": float(np.median(loop_us[active])),   # Cholesky + solver
-            "step_median_us": float(np.median(step_us)),
-            "model_terms_median_us": float(np.median(model_us))}                    # robot.control_terms
-
-
-if __name__ == "__main__":
-    for key, value in benchmark().items():
-        print(f"{key:36s} {value if isinstance(value, int) else round(value, 3)}")
+    def step(self, q, dq, compensation=None, tau_ext=None):
+        """(tau (n,), None): the hold's torque for the state q, dq (n,), plus the compensation if given."""
+        tau = self.robot.gravity(q) + self.kp * (self.q0 - q) - self.kd * dq
+        return (tau if compensation is None else tau + compensation), None

@@ -3,7 +3,6 @@ then stabilisation, with a vertical external force. Ring buffers of running sums
 so each 1 kHz update costs the same whatever the window length."""
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -167,84 +166,3 @@ class Detector:
         if fired:
             self.reference_torque = tau_ref.copy()
         return fired
-
-
-# ------------------------------------------------------------------------------------------------------
-# Simulated episodes and the benchmark (python detector.py)
-# ------------------------------------------------------------------------------------------------------
-def run_episode(seconds, rng, q0=None, payloads=(), pushes=(), motion=None, settings=DetectorSettings(),
-                soft=False):
-    """Run the realistic sim plant under a joint hold at q0 (+ motion(t) (7,) if given) with payload changes
-    payloads = [(t, m, (rx, ry, rz))] and pushes = [(force (3,), start, duration)] on link7, feeding the detector
-    every sample. soft: compliant gains (Kp 100/20) instead of JointHold's stiff ones. Returns detection times [s]."""
-    from sim import Q_READY, JointHold, Plant, PlantConfig
-    q0 = Q_READY if q0 is None else np.asarray(q0, dtype=float)
-    plant = Plant(PlantConfig.realistic(rng), rng=rng)
-    gains = dict(kp=(100.0,) * 4 + (20.0,) * 3, kd=(20.0,) * 4 + (2.0,) * 3) if soft else {}
-    hold = JointHold(plant.robot, q0, **gains)
-    for t, m, r in payloads:
-        plant.schedule_payload(t, m, r)
-    for force, start, duration in pushes:
-        plant.push(force, body="link7", start=start, duration=duration)
-    detector, fired = Detector(settings, plant.robot.n), []
-    s = plant.reset(q0)
-    for _ in range(int(round(seconds / plant.dt))):
-        if motion is not None:
-            hold.q0 = q0 + motion(s.t)
-        s = plant.step(hold(s))
-        if detector.update(s.tau_ext, J=plant.robot.jacobian(s.q)):
-            fired.append(s.t)
-    return fired
-
-
-def _update_us(window, with_jacobian, rng, samples=3000):
-    """Median microseconds per update with the paper's windows anchored at the end of a `window`-sample buffer."""
-    w = lambda a, b: (a + window - 500, b + window - 500)
-    det = Detector(DetectorSettings(window=window, check_windows=(w(431, 450), w(351, 370), w(271, 290)),
-                                    end_window=w(491, 500), force_window=w(451, 500)))
-    tau, F, J = rng.standard_normal((window + samples, 7)), rng.standard_normal((window + samples, 3)), \
-        rng.standard_normal((6, 7))
-    times = []
-    for k in range(window + samples):
-        t0 = time.perf_counter()
-        det.update(tau[k], J=J) if with_jacobian else det.update(tau[k], force=F[k])
-        times.append(time.perf_counter() - t0)
-    return 1e6 * float(np.median(times[window:]))
-
-
-def benchmark(episodes=8, seed=0):
-    """Detection latency on the realistic plant (random payloads 0.2-1.5 kg added at 1.0 s and removed at 2.5 s,
-    random poses near the ready pose, stiff and compliant holds), false detections (lateral pushes, free motion,
-    rest; totals over 3 plants), and the time per update. Prints and returns a dict."""
-    from sim import Q_READY
-    rng = np.random.default_rng(seed)
-    latencies, missed, extra = [], 0, 0
-    for i in range(episodes):
-        m, r = rng.uniform(0.2, 1.5), (*rng.uniform(-0.08, 0.08, 2), rng.uniform(0.0, 0.15))
-        events = [(1.0, m, r), (2.5, 0.0, (0.0, 0.0, 0.0))]
-        fired = np.array(run_episode(3.3, rng, Q_READY + rng.uniform(-0.3, 0.3, 7), events, soft=bool(i % 2)))
-        for t, *_ in events:
-            hit = fired[(fired > t) & (fired < t + 0.5)]
-            latencies += [1e3 * (hit[0] - t)] if len(hit) else []
-            missed += len(hit) == 0
-        extra += len(fired) - len(events) + missed
-    pushes = [((15.0, 0, 0), 0.8, 1.0), ((0, 20.0, 0), 2.5, 0.6), ((8.0, -6.0, 0), 3.5, 1.5), ((30.0, 0, 0), 5.5, 0.2)]
-    motion = lambda t: 0.3 * np.sin(np.pi * t) * np.array([1.0, 0.5, 0.0, 0.5, 0.0, 0.5, 0.0])
-    false = {}
-    for algorithm in ("referred", "as_printed"):
-        s, plants = DetectorSettings(algorithm=algorithm), [np.random.default_rng(seed + i) for i in range(3)]
-        false[algorithm] = dict(pushes_7s=sum(len(run_episode(7.0, p, pushes=pushes, settings=s)) for p in plants),
-                                motion_5s=sum(len(run_episode(5.0, p, motion=motion, settings=s)) for p in plants),
-                                rest_5s=sum(len(run_episode(5.0, p, settings=s)) for p in plants))
-    out = dict(latency_ms_median=float(np.median(latencies)), latency_ms_p90=float(np.percentile(latencies, 90)),
-               latency_ms_max=float(np.max(latencies)), events=2 * episodes, missed=missed, extra_detections=extra,
-               false_detections=false,
-               update_us_median={f"window {N}, {'J' if j else 'force'} given": round(_update_us(N, j, rng), 1)
-                                 for N in (500, 50_000) for j in (False, True)})
-    for k, v in out.items():
-        print(f"{k}: {v}")
-    return out
-
-
-if __name__ == "__main__":
-    benchmark()

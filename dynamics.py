@@ -9,6 +9,7 @@ import mujoco
 import numpy as np
 
 PANDA_XML = os.path.join(os.path.dirname(os.path.abspath(__file__)), "panda.xml")
+Q_READY = np.array([0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4])   # Franka's ready pose (rad)
 
 
 def as_states(name, x, n, allow_window=True):
@@ -31,6 +32,20 @@ def as_states(name, x, n, allow_window=True):
         idx = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
         raise ValueError(f"{name}: expected finite values, found {a[idx]} at index {idx}")
     return np.atleast_2d(a), batched
+
+
+def phi_of(theta):
+    """phi = (m, m rx, m ry, m rz) (..., 4) for theta = (m, rx, ry, rz) (..., 4): the payload parameters in which
+    the gravity torque is linear (Eq. 4)."""
+    theta = np.asarray(theta, dtype=float)
+    return np.concatenate([theta[..., :1], theta[..., :1] * theta[..., 1:]], axis=-1)
+
+
+def theta_of(phi):
+    """theta = (m, r) (..., 4) for phi = (m, m r) (..., 4); r is NaN where m = 0."""
+    phi = np.asarray(phi, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.concatenate([phi[..., :1], phi[..., 1:] / phi[..., :1]], axis=-1)
 
 
 def skew(v):
@@ -275,9 +290,7 @@ class Robot:
     def payload_torque(self, q, theta):
         """tau_mm (n,) / (T, n) for theta = (m, rx, ry, rz) (kg, m in the ee frame)."""
         theta, _ = as_states("theta", theta, 4, allow_window=False)
-        phi = theta[0] * theta[0, 0]
-        phi[0] = theta[0, 0]                               # (m, m rx, m ry, m rz)
-        return self.payload_regressor(q) @ phi
+        return self.payload_regressor(q) @ phi_of(theta[0])
 
     def body_regressor(self, q, dq, ddq):
         """Y (n, 10) / (T, n, 10): joint torque that a rigid payload applies to the arm under motion,

@@ -351,27 +351,6 @@ class MismatchNet:
         return self.predict(features(robot, q, tau_ext, self.net, kinematics))
 
 
-# ----------------------------------------------------------------------------------------------------
-# Training names (nn_train.py) stay importable from here; nn_train is imported on first use (no cycle)
-# ----------------------------------------------------------------------------------------------------
-TRAINING_NAMES = ("DataConfig", "random_pose", "simulate_episode", "make_dataset", "split_by_episode", "to_phi",
-                  "swap_payload", "TrainConfig", "norm_stats", "mse_loss", "adam_step", "evaluate", "train",
-                  "train_from_scratch", "held_out_mse", "benchmark")
-
-
-def __getattr__(name):
-    """Module attribute fallback (PEP 562): nn_numpy.DataConfig etc. are nn_train's objects."""
-    if name in TRAINING_NAMES:
-        import nn_train
-        return getattr(nn_train, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def main(argv=None):
-    """python nn_numpy.py train|bench [...]: the commands of nn_train.py."""
-    import nn_train
-    return nn_train.main(argv)
-
-
-if __name__ == "__main__":
+if __name__ == "__main__":          # python nn_numpy.py train|bench: the script's entry, not part of the module
+    from experiments.training import main
     sys.exit(main())

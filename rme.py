@@ -1,6 +1,6 @@
 """Rapid Mismatch Estimation, the pipeline (Sec. 4, Fig. 2): detector -> 200 ms window -> network prior ->
 variational inference -> compensation tau_comp = -J^T [F_hat; r_hat x F_hat] (Eq. 5). `python rme.py diagnose LOG`
-compares the nominal model with a robot log and finds the missing physical effect (diagnose.py)."""
+compares the nominal model with a robot log and finds the missing physical effect (diagnosis/)."""
 from __future__ import annotations
 
 import math
@@ -234,15 +234,10 @@ def _safe_theta(new, old, max_mass):
     return np.array([min(max(new[0], 0.0), max_mass), *np.clip(new[1:], -1.0, 1.0)])
 
 
-def main(argv=None):
-    argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] != "diagnose":
+if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module
+    if len(sys.argv) < 2 or sys.argv[1] != "diagnose":
         print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
               "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)")
-        return 2
-    import diagnose
-    return diagnose.main(argv[1:], prog="rme.py diagnose")
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        sys.exit(2)
+    from diagnosis.diagnose import main
+    sys.exit(main(sys.argv[2:], prog="rme.py diagnose"))

@@ -1,20 +1,18 @@
 """The MuJoCo Panda plant RME is tested on (paper Sec. 5 in simulation): 1 kHz torque control, a payload fixed at
 the end-effector, human pushes, and what a real Franka reports (q, dq, tau_J, tau_ext) with realistic sensing.
-Run `python sim.py --help` for the demos and benchmarks."""
+`python sim.py --help` lists the demos and benchmarks (experiments/)."""
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
-from dynamics import PANDA_XML, Robot, as_states, inertia_matrix
+from dynamics import PANDA_XML, Q_READY, Robot, as_states, inertia_matrix
 
 N = 7
-Q_READY = np.array([0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4])   # Franka's ready pose
 BIG, SMALL = 4, 3                                 # joints 1-4 and 5-7 (panda_facts.md)
 
 
@@ -73,6 +71,17 @@ class PlantConfig:
         return PlantConfig()
 
     @staticmethod
+    def preset(name: str, rng: np.random.Generator | None = None) -> "PlantConfig":
+        """'ideal' or 'realistic' (drawn from rng): the two presets the demos and benchmarks offer."""
+        if name == "ideal":
+            return PlantConfig.ideal()
+        if name == "realistic":
+            if rng is None:
+                raise ValueError("rng: the realistic preset draws its link errors from a np.random.Generator, found None")
+            return PlantConfig.realistic(rng)
+        raise ValueError(f"preset: expected 'ideal' or 'realistic', found {name!r}")
+
+    @staticmethod
     def realistic(rng: np.random.Generator) -> "PlantConfig":
         """A plant and sensors like a real Panda's (panda_facts.md), link errors drawn from rng."""
         direction = rng.normal(size=(N, 3))
@@ -85,7 +94,7 @@ class PlantConfig:
             stale_prob=0.06,                           # about 6 % stale repeats in a real log
             bias_amp=_per_joint(0.3, 0.1),             # a few tenths of a Nm, pose dependent
             torque_offset=GAZ_FO,
-            mass_scale=tuple(1.0 + rng.uniform(-0.08, 0.08, N)),      # link masses +-5-10 %
+            mass_scale=tuple(1.0 + rng.uniform(-0.08, 0.08, N)),      # link masses within +-8 %
             com_shift=tuple(map(tuple, shift)),
             friction_sigmoid=(GAZ_P1, GAZ_P2, GAZ_P3),
             armature=_per_joint(0.05, 0.02),           # assumption: rotor inertia order of magnitude
@@ -343,99 +352,6 @@ def _needs_rng(c: PlantConfig) -> bool:
     return bool(any(c.tau_noise) or c.q_noise or c.dq_noise or c.stale_prob or any(c.bias_amp))
 
 
-class JointHold:
-    """A joint-space hold, tau = G(q) + Kp (q0 - q) - Kd dq on the nominal model: the simple stiff controller used
-    for recording data (CPIC in cpic.py is the paper's controller)."""
-
-    def __init__(self, robot: Robot, q0, kp=(600.0,) * BIG + (50.0,) * SMALL, kd=(40.0,) * BIG + (4.0,) * SMALL):
-        self.robot, self.q0 = robot, as_states("q0", q0, robot.n, allow_window=False)[0][0]
-        self.kp, self.kd = np.asarray(kp), np.asarray(kd)
-
-    def __call__(self, s: Sample) -> np.ndarray:
-        return self.robot.gravity(s.q) + self.kp * (self.q0 - s.q) - self.kd * s.dq
-
-
-def record(plant: Plant, controller, seconds: float, first: Sample | None = None) -> dict:
-    """Run controller(sample) -> tau on the plant for `seconds`; the log as arrays: t (T,), q, dq, tau_J, tau_ext
-    (T, 7) and the true payload theta (T, 4) at each sample."""
-    s = first if first is not None else Sample(plant.t, *(np.zeros(N),) * 4)
-    steps = int(round(seconds / plant.dt))
-    log = {k: np.empty((steps,) + shape) for k, shape in
-           (("t", ()), ("q", (N,)), ("dq", (N,)), ("tau_J", (N,)), ("tau_ext", (N,)), ("theta", (4,)))}
-    for k in range(steps):
-        s = plant.step(controller(s))
-        log["t"][k], log["q"][k], log["dq"][k] = s.t, s.q, s.dq
-        log["tau_J"][k], log["tau_ext"][k], log["theta"][k] = s.tau_J, s.tau_ext, plant.theta
-    return log
-
-
-def save_log(path, log: dict):
-    """Write a log in the format rme.py diagnose reads: npz with t, q, dq, tau_J, tau_ext (paper sign), ..."""
-    np.savez(path, **{k: np.asarray(v) for k, v in log.items()}, tau_ext_sign="paper")
-
-
-def demo_payload(args):
-    """Foundation demo: the arm holds its pose, a payload is attached at 0.5 s, and the measured tau_ext
-    (referred to the torque seen just before) is printed beside robot.payload_torque for the true theta."""
-    rng = np.random.default_rng(args.seed)
-    config = PlantConfig.realistic(rng) if args.preset == "realistic" else PlantConfig.ideal()
-    plant = Plant(config, rng=rng)
-    if args.view:
-        plant.open_viewer()
-    theta = np.array([0.9, 0.05, -0.03, 0.13])        # one of the paper's Table 5 payloads
-    plant.schedule_payload(0.5, theta[0], theta[1:])
-    first = plant.reset(Q_READY)
-    log = record(plant, JointHold(plant.robot, Q_READY), 1.5, first)
-    before = log["tau_ext"][(log["t"] > 0.4) & (log["t"] <= 0.5)].mean(axis=0)
-    after_mask = log["t"] > 1.3
-    after = log["tau_ext"][after_mask].mean(axis=0)
-    model = plant.robot.payload_torque(log["q"][after_mask], theta).mean(axis=0)
-    print(f"Panda at the ready pose, {args.preset} plant; payload m = {theta[0]} kg, "
-          f"r = {theta[1:]} m (ee frame) attached at t = 0.5 s")
-    print("joint   tau_ext before   tau_ext after   after - before   payload_torque(q, theta)   [Nm]")
-    for j in range(N):
-        print(f"  {j + 1}   {before[j]:14.3f}  {after[j]:14.3f}  {after[j] - before[j]:15.3f}  {model[j]:24.3f}")
-    err = np.abs(after - before - model)
-    print(f"largest |measured change - model| = {err.max():.3f} Nm "
-          f"(sensor noise, quantisation and the plant's differences from the nominal model)")
-    return err
-
-
-def _demo(module, name):
-    """A demo function from another module, imported when it runs (so sim.py imports nothing heavy)."""
-    return lambda args: getattr(__import__(module), name)(args)
-
-
-DEMOS = {
-    "static": ("(default) CPIC holds a pose, an unknown payload arrives, RME detects, estimates, compensates",
-               _demo("scenarios", "static_hold")),
-    "basket": ("sequential loads added and removed with human pushes in between", _demo("scenarios", "basket")),
-    "pick-place": ("move, grasp, carry (+0.5 kg mid-carry), place", _demo("scenarios", "pick_place")),
-    "payload": ("measured tau_ext beside payload_torque for the true payload", demo_payload),
-    "hold": ("CPIC static hold, payload at 1.75 s, without and with exact compensation", _demo("demos", "hold")),
-    "limit-cycle": ("CPIC tracking a y-z limit cycle, a payload added, without and with RME",
-                    _demo("scenarios", "limit_cycle")),
-    "hidden-effect": ("a log with a hidden physical effect: compare, diagnose, add it, watch the error fall",
-                      _demo("diagnose", "hidden_effect")),
-    "better-model": ("fit the robot's friction from a log, give it to RME, compare the estimates",
-                     _demo("scenarios", "better_model")),
-    "timing": ("median microseconds of every hot path", _demo("bench", "timing")),
-    "bench": ("the paper's Tables 1, 4, 5 in simulation (--json for one JSON object)", _demo("bench", "bench")),
-}
-
-
-def main(argv=None):
-    p = argparse.ArgumentParser(description="MuJoCo Panda demos and benchmarks for Rapid Mismatch Estimation.")
-    p.add_argument("demo", nargs="?", default="static", choices=sorted(DEMOS),
-                   help="; ".join(f"{k}: {v[0]}" for k, v in sorted(DEMOS.items())))
-    p.add_argument("--preset", default="realistic", choices=("ideal", "realistic"), help="plant and sensors")
-    p.add_argument("--seed", type=int, default=0, help="seed of the np.random.Generator")
-    p.add_argument("--view", action="store_true", help="open the MuJoCo viewer when a display exists")
-    p.add_argument("--plot", metavar="FILE", default=None, help="save a figure (needs matplotlib)")
-    p.add_argument("--json", action="store_true", help="print results as one JSON object (bench)")
-    args = p.parse_args(argv)
-    DEMOS[args.demo][1](args)
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])
+if __name__ == "__main__":          # python sim.py [DEMO]: the script's entry into the demos, not part of the module
+    from experiments.cli import main
+    sys.exit(main(sys.argv[1:]))

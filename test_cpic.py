@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from cpic import (CPIC, Attractor, CPICConfig, LimitCycle, damping_matrix, impedance_wrench, rotation_log,
-                  run_closed_loop, solve_qp, storage)
+                  solve_qp, storage)
+from experiments.runner import ExactCompensation, Push
+from experiments.runner import run as run_loop
 from sim import Plant, PlantConfig, Q_READY
 
 TAU_MAX = np.array([87.0] * 4 + [12.0] * 3)
@@ -159,14 +161,14 @@ def test_infeasible_qp_or_singular_jacobian_falls_back_to_safe_torque(robot):
 
 
 def run(preset_payload, ctrl_factory, seconds, push=None, comp=None, use_tau_ext=False, q0=Q_READY):
+    """CPIC on the ideal plant through the runner; comp: a payload theta (4,) compensated exactly from t = 0."""
     plant = Plant(PlantConfig.ideal())
     if preset_payload is not None:
         plant.set_payload(*preset_payload)
-    first = plant.reset(q0)
-    if push is not None:
-        plant.push(push, body="link7", start=0.02, duration=0.3)
+    events = [] if push is None else [Push(0.02, push, 0.3)]
     ctrl = ctrl_factory(plant.robot)
-    return run_closed_loop(plant, ctrl, first, seconds, comp, use_tau_ext), ctrl, plant
+    est = None if comp is None else ExactCompensation(plant.robot, comp)
+    return run_loop(plant, ctrl, seconds, est, events, q0=q0, tau_ext_to_controller=use_tau_ext), ctrl, plant
 
 
 def limit_inside_free_motion(robot, free, fraction=0.4):
@@ -228,8 +230,7 @@ def test_storage_function_never_increases_with_exact_compensation(robot):
     true M, payload included; joint-space kinetic energy = 1/2 xdot^T M_x xdot + null-space motion)."""
     p0, R0 = robot.ee_pose(Q_READY)
     pol = Attractor(p0 + np.array([0.03, -0.04, 0.05]), rot([0, 0, 1], 0.2) @ R0)
-    comp = lambda t, q: -robot.payload_torque(q, THETA)
-    log, ctrl, plant = run((THETA[0], THETA[1:]), lambda r: CPIC(r, pol), 0.5, comp=comp)
+    log, ctrl, plant = run((THETA[0], THETA[1:]), lambda r: CPIC(r, pol), 0.5, comp=THETA)
     S = np.array([storage(dq, plant_mass_matrix(plant, q), V, ctrl.config)
                   for q, dq, V in zip(log["q"], log["dq"], log["V"])])
     assert np.diff(S).max() <= 1e-9                                    # tolerance: rounding [J]
@@ -246,8 +247,7 @@ def test_uncompensated_payload_sags_to_the_predicted_spurious_equilibrium(robot)
     sag = THETA[0] * 9.81 / (CPICConfig().damping_pos[0] * hold.gain_pos)
     assert np.allclose(p_end - p0, [0.0, 0.0, -sag], atol=3e-4)
     assert np.abs(none["dq"][-1]).max() < 0.01                              # settled: an equilibrium
-    comp = lambda t, q: -robot.payload_torque(q, THETA)
-    exact, _, _ = run((THETA[0], THETA[1:]), lambda r: CPIC(r, hold), 1.5, comp=comp)
+    exact, _, _ = run((THETA[0], THETA[1:]), lambda r: CPIC(r, hold), 1.5, comp=THETA)
     assert np.linalg.norm(robot.ee_pose(exact["q"][-1])[0] - p0) < 3e-4
 
 
@@ -290,6 +290,6 @@ def test_realistic_plant_keeps_torques_finite_and_within_limits():
     plant.schedule_payload(0.1, *THETA[:1], THETA[1:])
     plant.push(np.array([20.0, 0.0, 0.0]), start=0.2, duration=0.1)
     p0, R0 = robot.ee_pose(Q_READY)
-    log = run_closed_loop(plant, CPIC(robot, Attractor(p0, R0)), first, 0.4, use_tau_ext=True)
+    log = run_loop(plant, CPIC(robot, Attractor(p0, R0)), 0.4, first=first)
     assert np.isfinite(log["tau"]).all() and (np.abs(log["tau"]) <= TAU_MAX).all() and not log["fallback"].any()
     assert np.linalg.norm(robot.ee_pose(log["q"][-1])[0] - p0) < 0.03

@@ -6,7 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from detector import Detector, DetectorSettings, pseudo_force, run_episode
+from detector import Detector, DetectorSettings, pseudo_force
+from experiments.episodes import detector_episode as run_episode
 
 N7 = 7
 

@@ -9,6 +9,7 @@ import pytest
 
 import nn_numpy as nn
 import nn_train as nt
+from experiments import training
 from dynamics import Robot
 
 SMALL = nn.NetConfig(d=8, heads=2, d_hidden=12)      # same code paths, few enough entries to check them all
@@ -228,8 +229,8 @@ def test_few_hundred_adam_steps_halve_held_out_mass_loss_and_beat_predicting_the
     shipped-weights test), so the check is the mass part of the scaled loss: under half the mean
     predictor's and under half the untrained network's; and the training loss halves."""
     rng = np.random.default_rng(10)
-    tr, va = nt.split_by_episode(nt.make_dataset(16, rng), rng)
-    test = nt.make_dataset(6, rng)
+    tr, va = nt.split_by_episode(training.make_dataset(16, rng), rng)
+    test = training.make_dataset(6, rng)
     params = nn.init_params(rng)
     stats = nt.norm_stats(tr)
     xs = (test["x"] - stats["x_mean"]) / stats["x_std"]
@@ -249,7 +250,7 @@ def test_shipped_weights_beat_training_mean_on_held_out_simulated_windows():
     that of the training-set mean for m, rx, ry AND rz. rz (along the ee axis) is only observable through the
     tilt of the ee away from vertical, so its margin is the smallest (README: measured figures)."""
     model = nn.MismatchNet.load()
-    d = nt.make_dataset(30, np.random.default_rng(777), net=model.net)
+    d = training.make_dataset(30, np.random.default_rng(777), net=model.net)
     mse_nn = ((model.predict(d["x"]) - d["theta"]) ** 2).mean(0)
     mse_mean = ((model.stats["theta_mean"] - d["theta"]) ** 2).mean(0)
     assert np.all(mse_nn < mse_mean), (mse_nn, mse_mean)
@@ -328,35 +329,30 @@ def test_corrupted_or_missing_weights_file_raises_value_error(tmp_path):
 
 
 # --- module split and commands --------------------------------------------------------------------
-def test_training_names_stay_importable_from_nn_numpy_and_load_nn_train_only_on_use():
-    """bench.py imports DataConfig, random_pose, simulate_episode from nn_numpy and rme.py MismatchNet: in a fresh
-    interpreter nn_numpy alone must not load nn_train, and the re-exported names must be nn_train's own objects."""
+def test_nn_numpy_alone_loads_neither_the_trainer_nor_the_simulation():
+    """RME imports nn_numpy for the network: in a fresh interpreter that must not pull in the trainer, the plant or
+    the experiments."""
     code = ("import sys, nn_numpy\n"
-            "assert 'nn_train' not in sys.modules\n"
-            "from nn_numpy import MismatchNet, DataConfig, random_pose, simulate_episode\n"
-            "import nn_train\n"
-            "assert all(getattr(nn_numpy, k) is getattr(nn_train, k) for k in nn_numpy.TRAINING_NAMES)\n"
-            "assert nn_numpy.benchmark is nn_train.benchmark\n")
+            "loaded = {'nn_train', 'sim', 'experiments', 'mujoco.viewer'} & set(sys.modules)\n"
+            "assert not loaded, loaded\n")
     here = os.path.dirname(os.path.abspath(__file__))
     run = subprocess.run([sys.executable, "-c", code], cwd=here, capture_output=True, text=True, timeout=60)
     assert run.returncode == 0, run.stderr
-    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
-        nn.not_a_name
 
 
-def test_nn_numpy_main_hands_train_command_to_nn_train(monkeypatch, tmp_path):
+def test_retrain_command_hands_its_arguments_to_train_from_scratch(monkeypatch, tmp_path):
     calls = []
-    monkeypatch.setattr(nt, "train_from_scratch", lambda *a, **k: calls.append(a))
-    assert nn.main(["train", "--episodes", "3", "--seed", "5", "--out", str(tmp_path / "w.npz")]) == 0
+    monkeypatch.setattr(training, "train_from_scratch", lambda *a, **k: calls.append(a))
+    assert training.main(["train", "--episodes", "3", "--seed", "5", "--out", str(tmp_path / "w.npz")]) == 0
     assert calls == [(3, 5, str(tmp_path / "w.npz"))]
 
 
 @pytest.mark.skipif(not os.path.exists(nn.WEIGHTS), reason="no shipped weights.npz")
 def test_benchmark_reports_positive_microsecond_timings_under_keys_ending_in_us():
-    """bench.py's timing table collects the keys ending in "_us"; the three medians must be there, in us."""
-    r = nt.benchmark(repeats=10, held_out_episodes=1)
+    """The timing table collects the keys ending in "_us"; the three medians must be there, in us."""
+    r = training.benchmark(repeats=10, held_out_episodes=1)
     timings = {k: v for k, v in r.items() if k.endswith("_us")}
     assert set(timings) == {"forward_median_us", "features_median_us", "train_step_median_us"}
     assert all(np.isfinite(v) and 1.0 < v < 1e6 for v in timings.values()), timings
     with pytest.raises(ValueError, match="repeats"):
-        nt.benchmark(repeats=3)
+        training.benchmark(repeats=3)

@@ -5,13 +5,14 @@ import pytest
 
 from dynamics import Robot
 from rme import RME, RMESettings
+from experiments.runner import PayloadChange, run
 from sim import Q_READY, Plant, PlantConfig
 from test_rme import THREE_LINK
 
 
 def static_window(theta, seed, delay=0.25):
-    """q (200, 7) and tau_ext referred to the torque before the change, from a realistic-plant hold (vi.py)."""
-    from vi import simulated_window
+    """q (200, 7) and tau_ext referred to the torque before the change, from a realistic-plant hold."""
+    from experiments.episodes import simulated_window
     _, tau, q = simulated_window(theta, np.random.default_rng(seed), delay=delay)
     return q, tau
 
@@ -67,16 +68,9 @@ def closed_loop(use_rme, theta, seconds=3.0, t_attach=1.0, seed=5):
     robot = plant.robot
     p_star = robot.ee_pose(Q_READY)[0]
     ctrl, est = CPIC(robot, Attractor(*robot.ee_pose(Q_READY))), RME(robot, rng=np.random.default_rng(seed))
-    plant.schedule_payload(t_attach, theta[0], theta[1:])
-    s = plant.reset(Q_READY)
-    err, taus = [], []
-    for _ in range(int(seconds / plant.dt)):
-        comp = est.update(s.q, s.dq, s.tau_ext) if use_rme else None
-        tau, _ = ctrl.step(s.q, s.dq, comp, s.tau_ext)
-        taus.append(tau)
-        s = plant.step(tau)
-        err.append(np.linalg.norm(robot.ee_pose(s.q)[0] - p_star))
-    return np.array(err), np.array(taus), est
+    rec = run(plant, ctrl, seconds, est if use_rme else None, [PayloadChange(t_attach, theta[0], theta[1:])],
+              q0=Q_READY)
+    return np.linalg.norm(rec.p - p_star, axis=1), rec.tau, est
 
 
 def test_rme_returns_the_arm_to_its_pose_and_without_it_the_arm_sags():
@@ -105,21 +99,22 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
     from cpic import CPIC, Attractor
     plant = Plant(PlantConfig.ideal())
     ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)))
-    plant.schedule_payload(0.6, 1.0, [0.0, 0.0, 0.1])
-    plant.schedule_payload(1.5, 2.0, [0.0, 0.0, 0.1])
-    s = plant.reset(Q_READY)
-    for _ in range(2300):
-        comp = est.update(s.q, s.dq, s.tau_ext)
-        assert np.all(np.isfinite(comp)) and np.all(np.abs(comp) <= np.r_[[87.0] * 4, [12.0] * 3])
-        s = plant.step(ctrl.step(s.q, s.dq, comp)[0])
+
+    class Checked:                                     # the runner's estimator, every output checked
+        def update(self, q, dq, tau_ext):
+            comp = est.update(q, dq, tau_ext)
+            assert np.all(np.isfinite(comp)) and np.all(np.abs(comp) <= np.r_[[87.0] * 4, [12.0] * 3])
+            return comp
+    run(plant, ctrl, 2.3, Checked(), [PayloadChange(0.6, 1.0, (0.0, 0.0, 0.1)), PayloadChange(1.5, 2.0, (0.0, 0.0, 0.1))],
+        q0=Q_READY, tau_ext_to_controller=False)
     assert len(est.history) == 2 and np.isnan(est.history[0].mean).all()
     np.testing.assert_array_equal(est.theta, [3.0, 1.0, -1.0, 1.0])     # 50 kg at 5 m, clipped to the limits
 
 
 def test_fitted_friction_correction_removes_the_friction_bias_of_rme():
-    """Friction holds part of a new load while the arm settles (RME reads it light); friction fitted by diagnose.py
-    on an excitation log of the same robot and subtracted from tau_ext removes most of that bias (issue 6, item 7)."""
-    import scenarios
+    """Friction holds part of a new load while the arm settles (RME reads it light); friction fitted by the diagnosis
+    tool on an excitation log of the same robot and subtracted from tau_ext removes most of that bias."""
+    from experiments import scenarios
     config = PlantConfig.realistic(np.random.default_rng(21))
     model = scenarios.fit_friction_model(config, seconds=8.0, seed=22)
     theta = np.array([0.9, 0.05, -0.03, 0.13])

@@ -8,7 +8,9 @@ import pytest
 
 from dynamics import Robot, skew
 from rme import RMESettings
-from sim import N, Q_READY, JointHold, Plant, PlantConfig, record
+from cpic import JointHold
+from experiments.episodes import measure as record
+from sim import N, Q_READY, Plant, PlantConfig
 
 ROBOT = Robot.panda()
 LO, HI = ROBOT.model.jnt_range[:, 0], ROBOT.model.jnt_range[:, 1]

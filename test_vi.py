@@ -5,7 +5,8 @@ import pytest
 from scipy.optimize import minimize
 
 import vi
-from bench import TABLE5
+from experiments.bench import TABLE5
+from experiments.episodes import simulated_window
 from dynamics import Robot
 from sim import Q_READY
 
@@ -143,7 +144,7 @@ def test_linear_gaussian_posterior_matches_exact(known, warm_start):
 
 def test_fit_matches_minimiser_of_closed_form_elbo_on_simulated_window():
     rng = np.random.default_rng(4)
-    Y, tau, _ = vi.simulated_window(np.array([0.9, 0.05, -0.03, 0.13]), rng, Q_READY + 0.2)
+    Y, tau, _ = simulated_window(np.array([0.9, 0.05, -0.03, 0.13]), rng, Q_READY + 0.2)
     window, mu_prior = vi.precompute(Y, tau), np.array([0.7, 0.02, 0.0, 0.1])
     p = vi.fit(Y, tau, mu_prior, vi.VISettings(), rng)
     f = lambda x: expected_neg_elbo(x[:4], np.exp(x[4:]), window, mu_prior, SP)
@@ -163,7 +164,7 @@ def simulated():
     cases = [(np.array(th), Q_READY) for th in TABLE5]
     cases += [(np.array([rng.uniform(0.2, 1.5), *rng.uniform(-0.08, 0.08, 2), rng.uniform(0, 0.15)]),
                Q_READY + rng.uniform(-0.3, 0.3, 7)) for _ in range(10)]
-    return [(th, vi.simulated_window(th, rng, q0), th + SP * rng.standard_normal(4)) for th, q0 in cases]
+    return [(th, simulated_window(th, rng, q0), th + SP * rng.standard_normal(4)) for th, q0 in cases]
 
 
 def test_converges_in_far_fewer_than_700_iterations(simulated):

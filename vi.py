@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dynamics import phi_of, theta_of   # noqa: F401  (vi.phi_of, vi.theta_of: the estimate's parameters)
+
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 
@@ -193,12 +195,6 @@ def precompute(Y, tau, noise_std=None, settings=VISettings()):
 # ------------------------------------------------------------------------------------------------------
 # -ELBO and its gradient (reparameterised, eps held fixed)
 # ------------------------------------------------------------------------------------------------------
-def phi_of(theta):
-    """phi = (m, m rx, m ry, m rz) for theta (..., 4)."""
-    theta = np.asarray(theta, dtype=float)
-    return theta[..., :1] * np.concatenate([np.ones_like(theta[..., :1]), theta[..., 1:]], axis=-1)
-
-
 def likelihood_grad(theta, A, b, value=True):
     """NLL(phi(theta_k)) without its constants and dNLL/dtheta_k for samples theta (K, 4) -> (K,), (K, 4).
 
@@ -392,59 +388,3 @@ def _adam(window, mu_prior, sp, mu0, sigma0, C, s, rng):
                 break
             last = current
     return avg / (1 - s.average**t), t, converged, None if history is None else history[:t]
-
-
-# ------------------------------------------------------------------------------------------------------
-# Simulated windows and the benchmark (python vi.py)
-# ------------------------------------------------------------------------------------------------------
-def simulated_window(theta, rng, q0=None, delay=0.3, length=0.2, preset="realistic"):
-    """A window as RME sees it: the sim plant holds q0 (JointHold), a payload theta (4,) is attached at 0.5 s,
-    the window starts `delay` s later (about the detector's latency) and lasts `length` s. tau is tau_ext referred
-    to its mean over the 100 ms before the attachment. Returns Y (T, 7, 4), tau (T, 7), q (T, 7)."""
-    from sim import Q_READY, JointHold, Plant, PlantConfig, record
-    q0 = Q_READY if q0 is None else np.asarray(q0, dtype=float)
-    plant = Plant(PlantConfig.realistic(rng) if preset == "realistic" else PlantConfig.ideal(), rng=rng)
-    first = plant.reset(q0)
-    plant.schedule_payload(0.5, theta[0], theta[1:])
-    log = record(plant, JointHold(plant.robot, q0), 0.5 + delay + length, first)
-    t = log["t"]
-    ref = log["tau_ext"][(t > 0.4) & (t <= 0.5)].mean(axis=0)
-    sel = t > 0.5 + delay + 1e-9
-    return plant.robot.payload_regressor(log["q"][sel]), log["tau_ext"][sel] - ref, log["q"][sel]
-
-
-def benchmark(n_random=14, repeats=5, seed=0):
-    """Median fit time and iterations on realistic simulated windows (Table 5's payloads at the ready pose and
-    n_random random payloads at random poses near it), with the zero prior mean and a calibrated prior
-    (truth + sigma_prior * N(0, 1)); the paper's Adam start (q = prior) for comparison. Returns a dict."""
-    rng = np.random.default_rng(seed)
-    from bench import TABLE5
-    from sim import Q_READY
-    cases = [(np.array(th), Q_READY) for th in TABLE5]
-    cases += [(np.array([rng.uniform(0.2, 1.5), *rng.uniform(-0.08, 0.08, 2), rng.uniform(0.0, 0.15)]),
-               Q_READY + rng.uniform(-0.3, 0.3, 7)) for _ in range(n_random)]
-    windows = [(simulated_window(th, rng, q0)[:2], th) for th, q0 in cases]
-    sp = np.asarray(VISettings().sigma_prior)
-    priors = {"zero": [np.zeros(4)] * len(cases), "calibrated": [th + sp * rng.standard_normal(4) for th, _ in cases]}
-    out = {}
-    for name, settings in (("warm start (default)", VISettings()), ("q starts at prior", VISettings(warm_start=False))):
-        for prior, mu_priors in priors.items():
-            ms, its, conv, err, z_mf, z_lap = [], [], [], [], [], []
-            for ((Y, tau), th), mu_prior in zip(windows, mu_priors):
-                for _ in range(repeats):
-                    p = fit(Y, tau, mu_prior, settings, rng)
-                    ms.append(1e3 * p.seconds), its.append(p.iterations), conv.append(p.converged)
-                err.append(p.mean - th), z_mf.append(np.abs(p.mean - th) / p.std)
-                z_lap.append(np.abs(p.mean - th) / p.marginal_std)
-            r = dict(ms_median=round(float(np.median(ms)), 3), ms_p90=round(float(np.percentile(ms, 90)), 3),
-                     iterations_median=float(np.median(its)), iterations_max=int(np.max(its)),
-                     converged=float(np.mean(conv)), rmse=np.sqrt(np.mean(np.square(err), 0)).round(4).tolist(),
-                     cover2_std=(np.array(z_mf) < 2).mean(0).round(2).tolist(),
-                     cover2_marginal=(np.array(z_lap) < 2).mean(0).round(2).tolist())
-            out[f"{name}, {prior} prior mean"] = r
-            print(f"{name}, {prior} prior mean: {r}")
-    return out
-
-
-if __name__ == "__main__":
-    benchmark()

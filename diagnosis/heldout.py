@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from effect_model import solve
-from effects import Signals
+from diagnosis.effect_model import solve
+from diagnosis.effects import Signals
 
 
 class BlockGrams:

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 from scipy.signal import savgol_coeffs
 
-import diagnose as D
-from batch_dynamics import BatchDynamics
+from diagnosis import diagnose as D
+from diagnosis.batch_dynamics import BatchDynamics
 from dynamics import Robot
-from effect_model import Model
-from effects import Signals, custom
-from excite import (GAZ_FC, GAZ_FV, HIDDEN, QUASI_STATIC, ExciteConfig, payload_lstsq, plant_config, record_log,
-                    sensing)
-from logs import Log, LogConfig, load_log, prepare, write_csv
-from sim import GAZ_FO, GAZ_P1, GAZ_P2, GAZ_P3, save_log
+from diagnosis.effect_model import Model
+from diagnosis.effects import Signals, custom
+from diagnosis.excite import GAZ_FC, GAZ_FV, QUASI_STATIC, ExciteConfig, payload_lstsq
+from experiments.episodes import HIDDEN, plant_config, record_log, save_log, sensing
+from diagnosis.logs import Log, LogConfig, load_log, prepare, write_csv
+from sim import GAZ_FO, GAZ_P1, GAZ_P2, GAZ_P3
 
 ROBOT = Robot.panda()
 SECONDS = 4.0

@@ -6,8 +6,14 @@ from __future__ import annotations
 import numpy as np
 
 from cpic import CPIC, Attractor, LimitCycle
+from dynamics import Q_READY, Robot
+from experiments.runner import PayloadChange, PolicySwitch, Push, Record
+from experiments.runner import run as run_loop
+from diagnosis.effect_model import Model
+from diagnosis.logs import prepare
+from experiments.episodes import record_log
 from rme import RME
-from sim import Q_READY, Plant, PlantConfig
+from sim import Plant, PlantConfig
 
 
 def combine(*parts):
@@ -22,45 +28,27 @@ def combine(*parts):
 
 
 def make_plant(args, rng):
-    config = PlantConfig.realistic(rng) if args.preset == "realistic" else PlantConfig.ideal()
-    plant = Plant(config, rng=rng)
+    """The plant of a demo: args.preset ('ideal' or 'realistic', drawn from rng); MuJoCo's viewer if args.view."""
+    plant = Plant(PlantConfig.preset(args.preset, rng), rng=rng)
     if getattr(args, "view", False):
         plant.open_viewer()
     return plant
 
 
-def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, correction=None):
+def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, correction=None) -> Record:
     """One closed-loop run: CPIC (+ RME compensation when use_rme) on a plant made from args (preset, seed).
-    loads: [(t, (m, rx, ry, rz) total payload)], pushes: [(t, duration, force (3,))], policies: [(t, policy)]
-    (the first one, at t = 0, is the initial DS; default: hold the pose at q0). Returns a dict of arrays."""
+    loads: [(t, (m, rx, ry, rz) total payload, inertia or None)], pushes: [(t, duration, force (3,))],
+    policies: [(t, policy)] (the first one, at t = 0, is the initial DS; default: hold the pose at q0)."""
     rng = np.random.default_rng(args.seed)                # the same plant and sensor noise with and without RME
     plant = make_plant(args, rng)
     robot = plant.robot
     policies = list(policies) or [(0.0, Attractor(*robot.ee_pose(q0)))]
     ctrl = CPIC(robot, policies[0][1])
     est = RME(robot, rng=np.random.default_rng(args.seed + 1), correction=correction) if use_rme else None
-    for t, theta, inertia in loads:
-        plant.schedule_payload(t, theta[0], theta[1:], inertia)
-    for t, duration, force in pushes:
-        plant.push(force, body="link7", start=t, duration=duration)
-    s = plant.reset(q0)
-    steps = int(round(seconds / plant.dt))
-    log = {"t": np.empty(steps), "q": np.empty((steps, robot.n)), "theta": np.empty((steps, 4)),
-           "theta_hat": np.zeros((steps, 4)), "target": np.empty((steps, 3))}
-    pending = sorted(policies[1:], key=lambda e: e[0])
-    for k in range(steps):
-        while pending and pending[0][0] <= s.t:
-            ctrl.policy = pending.pop(0)[1]
-        comp = est.update(s.q, s.dq, s.tau_ext) if est is not None else None
-        tau, _ = ctrl.step(s.q, s.dq, comp, s.tau_ext)   # Eq. 8: the barriers see tau_ext
-        log["t"][k], log["q"][k], log["theta"][k] = s.t, s.q, plant.theta
-        log["theta_hat"][k] = est.theta if est is not None else 0.0
-        log["target"][k] = getattr(ctrl.policy, "p_star", getattr(ctrl.policy, "center", np.zeros(3)))
-        s = plant.step(tau)
-    log["p"], log["R"] = robot.ee_pose(log["q"])
-    log["history"] = est.history if est is not None else []
-    log["robot"] = robot
-    return log
+    events = [PayloadChange(t, theta[0], theta[1:], inertia) for t, theta, inertia in loads]
+    events += [Push(t, force, duration) for t, duration, force in pushes]
+    events += [PolicySwitch(t, policy) for t, policy in policies[1:]]
+    return run_loop(plant, ctrl, seconds, estimator=est, events=events, q0=q0)
 
 
 def print_estimates(log, label="RME"):
@@ -85,8 +73,8 @@ def error_mm(log, reference=None):
     return 1e3 * np.linalg.norm(log["p"] - ref, axis=1)
 
 
-def at(log, t):
-    return min(int(np.searchsorted(log["t"], t - 1e-9)), len(log["t"]) - 1)
+def at(log: Record, t):
+    return log.at(t)
 
 
 def save_plot(path, title, curves, events=(), ylabel="|p - p*| [mm]"):
@@ -174,7 +162,7 @@ def basket(args):
 def limit_cycle(args):
     """Tracking a stable limit cycle in the y-z plane (Sec. 5.3, Fig. 6); a payload is added at 4 s. Without RME
     the arm is pulled below the cycle; with RME it returns to it."""
-    robot_pose = Plant(PlantConfig.ideal()).robot.ee_pose(Q_READY)
+    robot_pose = Robot.panda().ee_pose(Q_READY)
     center = robot_pose[0] + np.array([0.1, 0.0, 0.0])
     cycle = LimitCycle(center, robot_pose[1], radius=0.1, period=6.0)
     theta, t_attach, seconds = np.array([2.0, 0.04, 0.0, 0.10]), 4.0, 12.0
@@ -214,8 +202,7 @@ def limit_cycle(args):
 def pick_place(args):
     """Pick-and-place (App. C, Fig. 8): move to an object, grasp it (attach 0.7 kg), carry it, 0.5 kg is added
     mid-carry, place it (detach) and go back."""
-    ideal = Plant(PlantConfig.ideal()).robot
-    p0, R0 = ideal.ee_pose(Q_READY)
+    p0, R0 = Robot.panda().ee_pose(Q_READY)
     pick, place = p0 + np.array([0.15, -0.2, -0.15]), p0 + np.array([0.1, 0.25, -0.05])
     plan = [(0.0, p0, "start"), (0.5, pick, "go to the object"), (3.0, pick + [0, 0, 0.15], "grasped: lift"),
             (4.5, place, "carry to the box"), (8.5, p0, "placed: go back")]
@@ -243,13 +230,10 @@ def pick_place(args):
 
 def fit_friction_model(config, seconds=12.0, seed=0):
     """Record an excitation log (no payload) on the robot `config` and fit its joint friction (Gaz sigmoid) on top of
-    the nominal model: the better model RME can subtract (diagnose.py, issue 6 item 7)."""
-    import logs
-    from effect_model import Model
-    from excite import record_log
+    the nominal model: the better model RME can subtract (the diagnosis tool)."""
     raw = record_log(config, seconds, np.random.default_rng(seed))
-    log = logs.prepare({k: raw[k] for k in ("t", "q", "dq", "tau_J", "tau_ext")})
-    model = Model.nominal(Plant(PlantConfig.ideal()).robot).add("sigmoid")
+    log = prepare({k: raw[k] for k in ("t", "q", "dq", "tau_J", "tau_ext")})
+    model = Model.nominal(Robot.panda()).add("sigmoid")
     model.fit(log)
     return model
 
@@ -260,10 +244,7 @@ def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1
     robot = plant.robot
     ctrl = CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
     est = RME(robot, rng=np.random.default_rng(seed + 1), correction=correction)
-    plant.schedule_payload(t_attach, theta[0], theta[1:])
-    s = plant.reset(Q_READY)
-    for _ in range(int(round(seconds / plant.dt))):
-        s = plant.step(ctrl.step(s.q, s.dq, est.update(s.q, s.dq, s.tau_ext), s.tau_ext)[0])
+    run_loop(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_attach, theta[0], theta[1:])], q0=Q_READY)
     return est.history[0] if est.history else None
 
 

@@ -6,16 +6,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from dynamics import Robot
-from effect_model import Model
-from effects import Signals
-from heldout import Selection, blocks_of, rank
-from logs import Log, LogConfig, load_log
+from diagnosis.effect_model import Model
+from diagnosis.heldout import Selection, blocks_of, rank
+from diagnosis.logs import Log, LogConfig, load_log
 
 
 @dataclass(frozen=True)
@@ -234,12 +232,9 @@ def main(argv=None, prog: str = "diagnose.py") -> int:
     p.add_argument("--model", default="nominal", choices=("nominal", "static"),
                    help="starting model: nominal = gravity + motion (Eq. 1); static = gravity only (RME's)")
     p.add_argument("--drop-nan", action="store_true", help="drop rows with NaN/inf (their count is reported)")
-    p.add_argument("--bench", action="store_true", help="time diagnose on a 20,000-sample, 7-joint log")
     args = p.parse_args(argv)
-    if args.bench:
-        return bench(json_out=args.json)
     if args.log is None:
-        p.error("a LOG file is needed (or --bench)")
+        p.error("a LOG file is needed")
     if args.plot:
         try:
             import matplotlib  # noqa: F401
@@ -344,45 +339,6 @@ def _top_effect(out: dict):
                "t": (np.broadcast_to(log.t[:, None], fitted.shape), "t [s]")}
     x, xlabel = signals.get(e.signal, (fitted, "its torque [Nm]"))
     return {"name": name, "fitted": fitted, "residual": m.residual(s) + fitted, "x": x, "xlabel": xlabel}
-
-
-def bench(seconds: float = 20.0, repeats: int = 5, json_out: bool = False) -> int:
-    """Median wall time of diagnose on a 20,000-sample, 7-joint log: a multi-sine with Gaz friction and offsets added
-    to the nominal torque and white sensor noise (synthetic: no plant needed to time the diagnosis)."""
-    from excite import ExciteConfig, multisine
-    from effects import _sigmoid_shape
-    from sim import GAZ_FO, GAZ_P1, GAZ_P2, GAZ_P3
-    from logs import prepare
-    rng = np.random.default_rng(0)
-    robot = Robot.panda()
-    t = 1e-3 * np.arange(int(seconds * 1000))
-    q, dq, ddq = multisine(t, ExciteConfig(), rng)
-    s = Signals(Log(t, q, dq, ddq, None, np.zeros_like(q)), robot)
-    tau_J = s.inverse_dynamics + np.asarray(GAZ_P1) * _sigmoid_shape(dq, np.asarray(GAZ_P2), np.asarray(GAZ_P3))
-    tau_J += np.asarray(GAZ_FO) + 0.02 * rng.normal(size=q.shape)
-    t0 = time.perf_counter()
-    log = prepare({"t": t, "q": q, "dq": dq, "tau_J": tau_J})
-    t_load = time.perf_counter() - t0
-    times, d = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        d = diagnose(Model.nominal(robot), log)
-        times.append(time.perf_counter() - t0)
-    res = {"samples": len(log), "joints": log.n, "median_s": float(np.median(times)), "runs": repeats,
-           "prepare_s": t_load, "selected": d.selected}
-    if json_out:
-        print(json.dumps(_jsonable(res)))
-    else:
-        print(f"diagnose on {len(log)} samples x {log.n} joints: median {res['median_s']:.3f} s over {repeats} runs "
-              f"(prepare: {t_load:.3f} s); selected {d.selected}")
-    return 0
-
-
-def hidden_effect(args):
-    """`python sim.py hidden-effect`: the walk-through compare -> diagnose -> add -> compare on a simulated log
-    (args: seed, preset, plot, json, view); see excite.demo."""
-    from excite import demo
-    return demo(args)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,4 @@
-"""The paper's tables reproduced in simulation (Sec. 5.1-5.2, Tables 1, 4 and 5) and the timing of every hot path:
-`python sim.py bench [--json]` and `python sim.py timing`. Every figure in the README comes from these."""
+"""The paper's tables reproduced in simulation (Sec. 5.1-5.2, Tables 1, 4 and 5): `python sim.py bench [--json]`."""
 from __future__ import annotations
 
 import json
@@ -7,8 +6,12 @@ import time
 
 import numpy as np
 
-from dynamics import Robot
-from sim import N, Q_READY, JointHold, Plant, PlantConfig
+from cpic import CPIC, Attractor
+from dynamics import Q_READY
+from experiments.runner import PayloadChange, run
+from nn_train import DataConfig, random_pose
+from rme import RME, RMESettings
+from sim import Plant, PlantConfig
 
 TABLE5 = [(0.300, 0.03, 0.00, 0.13), (0.500, 0.06, 0.00, 0.13), (0.700, 0.06, 0.00, 0.13),
           (0.900, 0.05, -0.03, 0.13), (1.100, 0.05, 0.02, 0.13), (1.290, 0.05, 0.01, 0.13)]   # paper Table 5
@@ -18,26 +21,11 @@ PAPER = {"table1": {"nn": [0.229e-3, 0.366e-3, 0.629e-3, 2.560e-3], "zero": [0.3
          "estimate_ms_median": 226.0, "attach_to_compensation_ms_median": 400.0}
 
 
-def median_us(fn, repeats=2000):
-    """Median wall time of fn() in microseconds over `repeats` calls (after 20 warm-up calls)."""
-    for _ in range(20):
-        fn()
-    ts = np.empty(repeats)
-    for i in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts[i] = time.perf_counter() - t0
-    return float(np.median(ts) * 1e6)
-
-
 def datasets(count, seed, t_change=0.6, seconds=3.0):
     """`count` simulated static holds under CPIC at random poses (the network's training distribution of poses and
     payloads, other seeds), a payload attached at t_change, RME streaming in the loop: the windows the pipeline
     itself uses. Each: dict(theta (4,), q, tau (L, 7) referred to the 30 samples before the change for the windows
     of L = 50, 100, 200, 300 ms starting 200 ms before the detection, detected (bool), delay [ms])."""
-    from cpic import CPIC, Attractor
-    from nn_train import DataConfig, random_pose
-    from rme import RME
     rng, cfg, out = np.random.default_rng(seed), DataConfig(), []
     lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
     for _ in range(count):
@@ -45,12 +33,9 @@ def datasets(count, seed, t_change=0.6, seconds=3.0):
         robot = plant.robot
         q0, theta = random_pose(robot, rng, cfg), rng.uniform(lo, hi)
         ctrl, est = CPIC(robot, Attractor(*robot.ee_pose(q0))), RME(robot, rng=np.random.default_rng(seed))
-        plant.schedule_payload(t_change, theta[0], theta[1:])
-        s, Q, TAU = plant.reset(q0), [], []
-        for _ in range(int(round(seconds / plant.dt))):
-            s = plant.step(ctrl.step(s.q, s.dq, est.update(s.q, s.dq, s.tau_ext), s.tau_ext)[0])
-            Q.append(s.q), TAU.append(s.tau_ext)
-        Q, TAU = np.array(Q), np.array(TAU)
+        rec = run(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_change, theta[0], theta[1:])], q0=q0)
+        Q = np.concatenate([rec.q[1:], [rec.last.q]])             # the samples after each step
+        TAU = np.concatenate([rec.tau_ext[1:], [rec.last.tau_ext]])
         k_change = int(round(t_change / plant.dt)) - 1              # sample i is at time (i + 1) dt
         hits = [e for e in est.history if e.t > t_change]
         k_det = int(round(hits[0].t / plant.dt)) - 1 if hits else k_change + 300
@@ -80,20 +65,13 @@ def closed_loop_trial(theta, seed, t_attach=0.75, seconds=2.5):
     """Realistic plant held at the ready pose by CPIC, payload attached at t_attach, RME streaming in the loop.
     Returns (first estimate after the attach, last applied estimate, ms from the attach to the compensation being
     applied); the estimates are None when nothing was detected."""
-    from cpic import CPIC, Attractor
-    from rme import RME
     rng = np.random.default_rng(seed)
     plant = Plant(PlantConfig.realistic(rng), rng=rng)
     robot = plant.robot
     est, ctrl = RME(robot, rng=np.random.default_rng(seed + 1)), CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
-    plant.schedule_payload(t_attach, theta[0], theta[1:])
-    s = plant.reset(Q_READY)
-    applied_at = None
-    for _ in range(int(round(seconds / plant.dt))):
-        comp = est.update(s.q, s.dq, s.tau_ext)
-        if applied_at is None and s.t > t_attach and np.any(comp):
-            applied_at = s.t
-        s = plant.step(ctrl.step(s.q, s.dq, comp, s.tau_ext)[0])
+    rec = run(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_attach, theta[0], theta[1:])], q0=Q_READY)
+    on = np.flatnonzero((rec.t > t_attach) & np.any(rec.theta_hat != 0.0, axis=1))
+    applied_at = rec.t[on[0]] if len(on) else None
     after = [e for e in est.history if e.t > t_attach and e.accepted]
     latency = np.nan if applied_at is None else (applied_at - t_attach) * 1e3
     return (after[0], after[-1], latency) if after else (None, None, latency)
@@ -101,7 +79,6 @@ def closed_loop_trial(theta, seed, t_attach=0.75, seconds=2.5):
 
 def tables(n_datasets=100, trials=10, seed=0, log=print):
     """Tables 1, 4 and 5 and the two latencies, as one dict (the JSON of `python sim.py bench --json`)."""
-    from rme import RME, RMESettings
     t0 = time.perf_counter()
     data = datasets(n_datasets, seed=10_000 + seed)
     detected = sum(d["detected"] for d in data)
@@ -165,65 +142,3 @@ def bench(args):
     if not args.json:
         print_tables(res)
     return res
-
-
-def timing(args=None):
-    """Median microseconds of every hot path (README's timing table): model terms, plant step, and whatever of
-    the controller, network, VI and full estimate is importable."""
-    robot, rng = Robot.panda(), np.random.default_rng(0)
-    q, dq = Q_READY + rng.normal(0, 0.2, N), rng.normal(0, 0.5, N)
-    Qw = Q_READY + rng.normal(0, 0.2, (200, N))
-    theta = np.array([0.9, 0.05, -0.03, 0.13])
-    phi = np.r_[theta[0], theta[0] * theta[1:]]
-    rows = {
-        "jacobian": median_us(lambda: robot.jacobian(q)),
-        "mass_matrix": median_us(lambda: robot.mass_matrix(q)),
-        "bias": median_us(lambda: robot.bias(q, dq)),
-        "payload_regressor": median_us(lambda: robot.payload_regressor(q)),
-        "payload_regressor (200-sample window)": median_us(lambda: robot.payload_regressor(Qw), 300),
-        "terms (J, M, bias in one pass)": median_us(lambda: robot.terms(q, dq)),
-        "terms + payload_torque (two calls)": median_us(lambda: (robot.terms(q, dq), robot.payload_torque(q, theta))),
-        "control_terms + payload torque from its J, R (one control step's model)":
-            median_us(lambda: _step_model(robot, q, dq, phi)),
-    }
-    for preset in ("ideal", "realistic"):
-        r2 = np.random.default_rng(1)
-        plant = Plant(PlantConfig.realistic(r2) if preset == "realistic" else PlantConfig.ideal(), rng=r2)
-        hold = JointHold(plant.robot, Q_READY)
-        s = [plant.reset(Q_READY)]
-        tau = hold(s[0])                               # a fixed command: the arm stays close to its pose
-        rows[f"plant step ({preset})"] = median_us(lambda: plant.step(tau), 3000)
-    from rme import RME
-    from vi import simulated_window
-    est = RME(robot, rng=np.random.default_rng(0))
-    z = np.zeros(N)
-    rows["RME.update (one 1 kHz sample, no detection)"] = median_us(lambda: est.update(Q_READY, z, z), 3000)
-    windows = [simulated_window(np.array(th), np.random.default_rng(i))[1:] for i, th in enumerate(TABLE5)]
-    ests = []
-    for tau, qw in windows * 20:
-        ests.append(est.estimate(qw, tau).seconds * 1e6)
-    rows["RME.estimate (network + VI, 200-sample window; Table 5 windows)"] = float(np.median(ests))
-    for name, fn in _module_timings():
-        rows[name] = fn
-    for k, v in rows.items():
-        print(f"{k:58s} {v:9.1f} us")
-    return rows
-
-
-def _step_model(robot, q, dq, phi):
-    """What one control step with compensation needs from the model: J, M, C dq + G, G, p, R and tau_mm."""
-    J, M, b, G, p, R = robot.control_terms(q, dq)
-    return J, M, b, G, p, R, robot.payload_regressor_from(J, R) @ phi
-
-
-def _module_timings():
-    """(name, median us) of the other modules' benchmark() functions, skipping any that is missing."""
-    out = []
-    for mod in ("cpic", "nn_numpy", "vi"):
-        try:
-            res = __import__(mod).benchmark()
-        except Exception as err:                      # a missing module or weights: say so, go on
-            out.append((f"{mod}: not available ({type(err).__name__}: {err})", float("nan")))
-            continue
-        out += [(f"{mod}: {k}", float(v)) for k, v in res.items() if k.endswith("_us") or k.endswith("us")]
-    return out

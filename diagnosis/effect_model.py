@@ -6,10 +6,10 @@ import copy
 
 import numpy as np
 
-from batch_dynamics import BatchDynamics
+from diagnosis.batch_dynamics import BatchDynamics
 from dynamics import Robot, as_states
-from effects import Effect, EffectConfig, Signals, library
-from logs import Log
+from diagnosis.effects import Effect, EffectConfig, Signals, library
+from diagnosis.logs import Log
 
 
 def solve(G, b, rcond: float = 1e-10):

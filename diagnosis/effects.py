@@ -11,9 +11,9 @@ from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 from scipy.special import expit
 
-from batch_dynamics import BatchDynamics
+from diagnosis.batch_dynamics import BatchDynamics
 from dynamics import Robot
-from logs import Log
+from diagnosis.logs import Log
 
 
 @dataclass(frozen=True)
