@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dynamics import pseudo_wrench
+
 
 @dataclass(frozen=True)
 class DetectorSettings:
@@ -49,10 +51,10 @@ class DetectorSettings:
             raise ValueError(f"lam: expected a finite damping >= 0, found {self.lam}")
 
 
-def pseudo_force(J, tau_ext, lam=0.01):
-    """Force part (3,) of the pseudo-wrench W = (J J^T + lam I)^-1 J tau_ext (Sec. 4.1 with the inverse the paper
-    omits, paper_notes), J (6, n) world frame, linear rows first."""
-    return np.linalg.solve(J @ J.T + lam * np.eye(6), J @ tau_ext)[:3]
+def pseudo_force(J, tau_ext, lam=DetectorSettings.lam, check=True):
+    """Force part (3,) of the pseudo-wrench W = (J J^T + lam I)^-1 J tau_ext (dynamics.pseudo_wrench, Sec. 4.1),
+    J (6, n) world frame, linear rows first; lam defaults to the detector's damping."""
+    return pseudo_wrench(J, tau_ext, lam, check)[:3]
 
 
 class Detector:
@@ -70,7 +72,7 @@ class Detector:
     Why: a real Panda's tau_ext carries a pose-dependent bias b of a few tenths of a Nm, so ||b + tau_mm||^2 -
     ||b||^2 = 2 b.tau_mm + ||tau_mm||^2 can hide a load or a removal, the absolute force after a removal is the
     bias's own (pointing anywhere), and single samples of ||b + noise||^2 jump by > 0.7 Nm^2 at rest on the
-    realistic plant (as_printed fires repeatedly at rest there: benchmark()). Window means instead of
+    realistic plant (as_printed fires repeatedly at rest there: `python sim.py detector-bench`). Window means instead of
     samples 1 and 500, and the settled-before test, stop it firing on the first samples of a new change or on a
     window that starts mid-change; the vector stabilisation test does not grow with the load, as
     |mean s - mean s'| ~ 2 ||tau_mm|| noise does (Alg. 1 delayed a 1.2 kg detection past 500 ms in simulation).

@@ -48,6 +48,27 @@ def theta_of(phi):
         return np.concatenate([phi[..., :1], phi[..., 1:] / phi[..., :1]], axis=-1)
 
 
+def pseudo_wrench(J, tau_ext, lam, check=True):
+    """W = (J J^T + lam I)^-1 J tau_ext (Sec. 4.1; paper_notes: the paper's formula lacks the inverse): the wrench
+    [F; torque] at the ee that would explain tau_ext. J (6, n) or (T, 6, n), tau_ext (n,) or (T, n) -> (6,) or
+    (T, 6), in the frame J's rows are expressed in. lam: the damping (no default: the network and the detector
+    use different values, NetConfig.lam and DetectorSettings.lam). check=False skips the input checks (the 1 kHz
+    loop, whose inputs are checked once upstream)."""
+    if not check:
+        return np.linalg.solve(J @ np.swapaxes(J, -1, -2) + lam * np.eye(6), (J @ tau_ext[..., None]))[..., 0]
+    J, tau_ext = np.asarray(J, dtype=float), np.asarray(tau_ext, dtype=float)
+    if J.ndim not in (2, 3) or J.shape[-2] != 6:
+        raise ValueError(f"J: expected shape (6, n) or (T, 6, n), found {J.shape}")
+    if tau_ext.shape != J.shape[:-2] + J.shape[-1:]:
+        raise ValueError(f"tau_ext: expected shape {J.shape[:-2] + J.shape[-1:]}, found {tau_ext.shape}")
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(tau_ext))):
+        raise ValueError("J, tau_ext: expected finite values, found NaN or inf")
+    if not (np.isfinite(lam) and lam >= 0):
+        raise ValueError(f"lam: expected a finite damping >= 0, found {lam}")
+    A = J @ np.swapaxes(J, -1, -2) + lam * np.eye(6)                      # (..., 6, 6)
+    return np.linalg.solve(A, (J @ tau_ext[..., None]))[..., 0]
+
+
 def skew(v):
     """[v]x for v (..., 3) -> (..., 3, 3), so skew(v) @ w = v x w."""
     v = np.asarray(v, dtype=float)
@@ -69,7 +90,7 @@ class Robot:
 
     model: the MjModel (fixed); ee: name of the end-effector site. Single-state calls run MuJoCo's own
     functions on a private MjData; window calls of the kinematic terms (ee_pose, jacobian, payload_*) use a
-    vectorised forward-kinematics pass over the chain, checked against MuJoCo in the tests.
+    vectorised forward-kinematics pass over the body tree (body_frames), checked against MuJoCo in the tests.
     """
 
     def __init__(self, model: mujoco.MjModel, ee: str = "ee"):
@@ -86,7 +107,7 @@ class Robot:
         self._g_skew = skew(self.g)
         self.data = mujoco.MjData(model)
         self._M = np.zeros((self.n, self.n))
-        self._chain = self._serial_chain()
+        self._tree = self._body_tree()
 
     @classmethod
     def panda(cls) -> "Robot":
@@ -102,6 +123,26 @@ class Robot:
         except Exception as err:                        # MuJoCo reports parse errors as ValueError/Exception
             raise ValueError(f"path: could not load MJCF {path!r}: {err}") from None
         return cls(model, ee)
+
+    def torque_limits(self) -> np.ndarray:
+        """|tau| limit per joint (n,) [Nm] from the model's force limits: the joint's actfrcrange, each actuator's
+        forcerange x gear, and for a plain motor (torque = gain x gear x ctrl) its ctrlrange x gain x gear; inf
+        where nothing limits the joint. A position or velocity servo's ctrlrange is a set point, not a torque."""
+        m, lim = self.model, np.full(self.n, np.inf)
+        for j in range(m.njnt):
+            if m.jnt_actfrclimited[j]:
+                lim[m.jnt_dofadr[j]] = np.abs(m.jnt_actfrcrange[j]).max()
+        for a in range(m.nu):
+            if m.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT:
+                continue
+            dof, gear = m.jnt_dofadr[m.actuator_trnid[a, 0]], abs(m.actuator_gear[a, 0])
+            if m.actuator_forcelimited[a]:
+                lim[dof] = min(lim[dof], np.abs(m.actuator_forcerange[a]).max() * gear)
+            motor = (m.actuator_dyntype[a] == mujoco.mjtDyn.mjDYN_NONE and m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE
+                     and m.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED)
+            if motor and m.actuator_ctrllimited[a]:
+                lim[dof] = min(lim[dof], np.abs(m.actuator_ctrlrange[a]).max() * abs(m.actuator_gainprm[a, 0]) * gear)
+        return lim
 
     # --- single-state MuJoCo calls -------------------------------------------------------------
     def _kin(self, q, dq=None):
@@ -209,47 +250,69 @@ class Robot:
         self._kin(q[0])
         return self.data.site_xpos[self.site].copy(), self.data.site_xmat[self.site].reshape(3, 3).copy(), self._jac()
 
-    def _serial_chain(self):
-        """Bodies from the root to the ee site's body, each with its joint (or -1 for a welded body)."""
-        m, chain, b = self.model, [], int(self.model.site_bodyid[self.site])
-        while b > 0:
+    def _body_tree(self):
+        """Per body b >= 1: (parent, pos (3,), R0 (3, 3) fixed in the parent, joint or -1); None when a body has
+        several joints (windows then fall back to per-sample MuJoCo calls)."""
+        m, tree = self.model, []
+        for b in range(1, m.nbody):
             jnts = np.flatnonzero(m.jnt_bodyid == b)
             if len(jnts) > 1:
-                return None                              # not a plain serial chain: windows fall back to loops
-            Rb = np.empty(9)
-            mujoco.mju_quat2Mat(Rb, m.body_quat[b])
-            chain.append((m.body_pos[b].copy(), Rb.reshape(3, 3), int(jnts[0]) if len(jnts) else -1))
-            b = int(m.body_parentid[b])
+                return None
+            R0 = np.empty(9)
+            mujoco.mju_quat2Mat(R0, m.body_quat[b])
+            tree.append((int(m.body_parentid[b]), m.body_pos[b].copy(), R0.reshape(3, 3), int(jnts[0]) if len(jnts) else -1))
         Rs = np.empty(9)
         mujoco.mju_quat2Mat(Rs, m.site_quat[self.site])
-        self._site_frame = (m.site_pos[self.site].copy(), Rs.reshape(3, 3))
-        return chain[::-1]
+        self._site_frame = (int(m.site_bodyid[self.site]), m.site_pos[self.site].copy(), Rs.reshape(3, 3))
+        self._ee_dofs = np.zeros(self.n)                   # 1 for the joints between the base and the ee site
+        b = self._site_frame[0]
+        while b > 0:
+            for j in np.flatnonzero(m.jnt_bodyid == b):
+                self._ee_dofs[m.jnt_dofadr[j]] = 1.0
+            b = int(m.body_parentid[b])
+        return tree
 
-    def _fk(self, q):
-        """Vectorised forward kinematics for q (T, n): site p (T,3), R (T,3,3), joint axes and anchors (T,n,3)."""
+    def body_frames(self, q):
+        """Window forward kinematics over the whole body tree, q (T, n): body origins p and rotations R in the world
+        frame (lists over the bodies of (T, 3) and (T, 3, 3), body 0 the world) and the joint axes z and anchors o
+        (T, n, 3) in the world frame. A hinge turns its body by q - qpos0 about its axis, as in MuJoCo."""
+        q, _ = as_states("q", q, self.n)
+        if self._tree is None:
+            raise ValueError("robot: body_frames needs at most one joint per body, found a body with several")
+        return self._frames(q)
+
+    def _frames(self, q):
         m, T = self.model, q.shape[0]
-        if self._chain is None:
-            out = [self.ee_pose(qi) for qi in q]
-            return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), None, None
-        p, R = np.zeros((T, 3)), np.broadcast_to(np.eye(3), (T, 3, 3))
-        axes, anchors = np.zeros((T, self.n, 3)), np.zeros((T, self.n, 3))
-        for pos, Rb, jnt in self._chain:               # body frame from its parent: pos, Rb (fixed)
-            p = p + R @ pos
-            R = R @ Rb
+        p, R = [np.zeros((T, 3))], [np.broadcast_to(np.eye(3), (T, 3, 3))]
+        z, o = np.zeros((T, self.n, 3)), np.zeros((T, self.n, 3))
+        for parent, pos, R0, jnt in self._tree:            # bodies in MuJoCo's order: parents come first
+            pb, Rb = p[parent] + R[parent] @ pos, R[parent] @ R0
             if jnt >= 0:
                 dof, a_loc, c_loc = m.jnt_dofadr[jnt], m.jnt_axis[jnt], m.jnt_pos[jnt]
-                angle = q[:, m.jnt_qposadr[jnt]] - m.qpos0[m.jnt_qposadr[jnt]]   # MuJoCo turns by q - ref
-                anchor = p + R @ c_loc if c_loc.any() else p                  # (T, 3)
+                angle = q[:, m.jnt_qposadr[jnt]] - m.qpos0[m.jnt_qposadr[jnt]]
+                anchor = pb + Rb @ c_loc if c_loc.any() else pb                 # (T, 3), fixed on the parent
                 if a_loc[0] == 0.0 and a_loc[1] == 0.0 and a_loc[2] > 0.0:    # about the body z axis (DH arms)
                     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-                    x, y = R[:, :, 0], R[:, :, 1]                             # R_body = R_pre RotZ(q), by columns
-                    R = np.stack([c * x + s * y, c * y - s * x, R[:, :, 2]], axis=2)
+                    x, y = Rb[:, :, 0], Rb[:, :, 1]                           # R_body = R_pre RotZ(q), by columns
+                    Rb = np.stack([c * x + s * y, c * y - s * x, Rb[:, :, 2]], axis=2)
                 else:
-                    R = R @ _axis_rotation(a_loc, angle)                      # R_body = R_pre Rot(a, q)
-                p = anchor - R @ c_loc if c_loc.any() else anchor
-                axes[:, dof], anchors[:, dof] = R @ (a_loc / np.linalg.norm(a_loc)), anchor
-        pos, Rs = self._site_frame
-        return p + R @ pos, R @ Rs, axes, anchors
+                    Rb = Rb @ _axis_rotation(a_loc, angle)                    # R_body = R_pre Rot(a, q)
+                pb = anchor - Rb @ c_loc if c_loc.any() else anchor
+                z[:, dof], o[:, dof] = Rb @ (a_loc / np.linalg.norm(a_loc)), anchor
+            p.append(pb)
+            R.append(Rb)
+        return {"p": p, "R": R, "z": z, "o": o}
+
+    def _fk(self, q):
+        """Vectorised forward kinematics for q (T, n): site p (T,3), R (T,3,3), joint axes and anchors (T,n,3)
+        (axes zero for joints that do not move the ee)."""
+        if self._tree is None:
+            out = [self.ee_pose(qi) for qi in q]
+            return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), None, None
+        f = self._frames(q)
+        b, pos, Rs = self._site_frame
+        p, R = f["p"][b], f["R"][b]
+        return p + R @ pos, R @ Rs, f["z"] * self._ee_dofs[:, None], f["o"]
 
     def _fk_jacobian(self, q):
         p, R, axes, anchors = self._fk(q)

@@ -1,6 +1,6 @@
 """The mismatch network f_NN of Sec. 4.1 / Appendix F (Table 6) in NumPy with hand-written backprop, its
-pseudo-wrench input (Sec. 4.1, W = (J J^T + lambda I)^-1 J tau_ext) and the weights file; data and trainer are in
-nn_train.py. Retrain: python nn_numpy.py train; time it: python nn_numpy.py bench (both run nn_train.py)."""
+pseudo-wrench input (Sec. 4.1, W = (J J^T + lambda I)^-1 J tau_ext) and the weights file; the trainer is nn_train.py,
+the data experiments/training.py. Retrain: python nn_numpy.py train; time it: python nn_numpy.py bench."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from dynamics import pseudo_wrench
+
 WEIGHTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights.npz")
+MAX_ABS_WEIGHT = 1e6          # larger stored values overflow the forward pass: a corrupt or foreign file
 
 
 @dataclass(frozen=True)
@@ -211,23 +214,6 @@ def backward(dy, cache):
 # ----------------------------------------------------------------------------------------------------
 # Input pipeline (Sec. 4.1): 20 pseudo-wrenches from a 200-sample window
 # ----------------------------------------------------------------------------------------------------
-def pseudo_wrench(J, tau_ext, lam=0.01):
-    """W = (J J^T + lam I)^-1 J tau_ext (paper_notes: the paper's formula lacks the inverse).
-
-    J (T, 6, n), tau_ext (T, n) -> W (T, 6) = [F; torque], in the frame J's rows are expressed in."""
-    J, tau_ext = np.asarray(J, dtype=float), np.asarray(tau_ext, dtype=float)
-    if J.ndim != 3 or J.shape[1] != 6:
-        raise ValueError(f"J: expected shape (T, 6, n), found {J.shape}")
-    if tau_ext.shape != (J.shape[0], J.shape[2]):
-        raise ValueError(f"tau_ext: expected shape {(J.shape[0], J.shape[2])}, found {tau_ext.shape}")
-    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(tau_ext))):
-        raise ValueError("J, tau_ext: expected finite values, found NaN or inf")
-    if not (np.isfinite(lam) and lam >= 0):
-        raise ValueError(f"lam: expected a finite damping >= 0, found {lam}")
-    A = J @ J.transpose(0, 2, 1) + lam * np.eye(6)                          # (T, 6, 6)
-    return np.linalg.solve(A, (J @ tau_ext[..., None]))[..., 0]
-
-
 def features(robot, q, tau_ext, cfg=NetConfig(), kinematics=None):
     """Network input x (M, 6) from a window q (T, n), tau_ext (T, n) with T >= M (T = 200 at 1 kHz).
 
@@ -304,6 +290,9 @@ def load_weights(path, net=NetConfig()):
                              f"found {a.dtype} {a.shape}")
         if name.endswith("_std") and np.any(a <= 0):
             raise ValueError(f"{path}: array {name!r} expected positive values, found {a.tolist()}")
+        if name != "meta" and np.abs(a).max(initial=0.0) > MAX_ABS_WEIGHT:
+            raise ValueError(f"{path}: array {name!r} expected values within +-{MAX_ABS_WEIGHT:g} (a trained network's "
+                             f"are of order 1), found {np.abs(a).max():.3g}")
     extra = sorted(set(arrays) - set(expected))
     if extra:
         raise ValueError(f"{path}: unexpected arrays {extra}")
@@ -329,7 +318,13 @@ class MismatchNet:
 
     @classmethod
     def load(cls, path=WEIGHTS, net=NetConfig()):
-        return cls(*load_weights(path, net), net=net)
+        """The network stored at path; ValueError naming the file and the array if it cannot be used, including a
+        network whose prediction for a typical input is not finite."""
+        model = cls(*load_weights(path, net), net=net)
+        probe = model.stats["x_mean"] + model.stats["x_std"] * np.ones((net.M, net.d_in))
+        if not np.all(np.isfinite(model.predict(probe))):
+            raise ValueError(f"{path}: the stored network predicts non-finite values for a typical input")
+        return model
 
     def predict(self, x):
         """x (B, M, 6) or (M, 6) raw pseudo-wrenches (from `features`) -> theta (B, 4) or (4,)."""

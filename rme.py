@@ -4,7 +4,6 @@ compares the nominal model with a robot log and finds the missing physical effec
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -14,8 +13,8 @@ import numpy as np
 import vi
 from detector import Detector, DetectorSettings, pseudo_force
 from dynamics import Robot, as_states
+from nn_numpy import WEIGHTS, MismatchNet
 
-WEIGHTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights.npz")
 
 
 @dataclass(frozen=True)
@@ -94,18 +93,13 @@ class RME:
         self._pending = None                           # (sample index when it applies, Estimate)
         self._refine, self._still = None, 0            # a pending estimate at rest; samples the arm has been still
         self.history: list[Estimate] = []
-        nu_ok = self.robot.model.nu == n
-        self._limit = self.robot.model.actuator_ctrlrange[:, 1].copy() if nu_ok else np.full(n, np.inf)
+        self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
-    def _load_network(self, weights):
-        if weights is None:
-            return None
-        try:
-            from nn_numpy import MismatchNet
-            return MismatchNet.load(weights)
-        except (OSError, ValueError, KeyError) as err:
-            print(f"rme: cannot use the network weights {weights!r} ({err}); using a zero prior mean", file=sys.stderr)
-            return None
+    @staticmethod
+    def _load_network(weights):
+        """The network prior; weights=None runs without it (zero prior mean). A file that cannot be used is a
+        ValueError naming the file and the array (MismatchNet.load), never silently replaced."""
+        return None if weights is None else MismatchNet.load(weights)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -161,7 +155,7 @@ class RME:
         Y = self.robot.payload_regressor_from(J, R)
         tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
-        fired = self.detector.update(r, pseudo_force(J, r, self.settings.detector.lam)) and self._k >= keep
+        fired = self.detector.update(r, pseudo_force(J, r, self.settings.detector.lam, check=False)) and self._k >= keep
         if fired and self._refine is None:
             self._on_detection()
         # while an estimate at rest is pending, the arm is still moving in answer to the last compensation and the
@@ -216,7 +210,7 @@ class RME:
         s, k = self.settings, self._k
         e, Y = self._estimate(Qw, Tw)
         e.t, e.kind = k / s.rate, kind
-        before = np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2)        # what the old estimate leaves unexplained
+        before = np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2)        # what the estimate before leaves unexplained
         e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
         e.accepted = bool(e.explained >= s.min_explained)
         self.history.append(e)
@@ -227,7 +221,7 @@ class RME:
 
 
 def _safe_theta(new, old, max_mass):
-    """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the old one."""
+    """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the current one."""
     new = np.asarray(new, dtype=float)
     if new.shape != (4,) or not np.all(np.isfinite(new)):
         return old

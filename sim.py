@@ -273,7 +273,7 @@ class Plant:
     def _measure(self, tau):
         c, d, rng = self.config, self.data, self.rng
         if self._last is not None and c.stale_prob > 0 and rng.random() < c.stale_prob:
-            s = dataclasses.replace(self._last, t=d.time)      # a dropped packet: the old reading again
+            s = dataclasses.replace(self._last, t=d.time)      # a dropped packet: the last reading again
             self._last = s
             return s
         q, dq = d.qpos.copy(), d.qvel.copy()

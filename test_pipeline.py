@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from dynamics import Robot
+from nn_numpy import WEIGHTS
 from rme import RME, RMESettings
 from experiments.runner import PayloadChange, run
 from sim import Q_READY, Plant, PlantConfig
@@ -49,12 +50,23 @@ def test_estimate_rejects_bad_windows():
             est.estimate(*args)
 
 
-def test_missing_weights_fall_back_to_zero_prior_once(tmp_path, capsys):
+def test_unusable_weights_file_is_a_value_error_naming_the_file_and_array(tmp_path):
     bad = tmp_path / "weights.npz"
     bad.write_bytes(b"not a weights file")
-    est = RME(weights=str(bad))
-    err = capsys.readouterr().err
-    assert err.count("cannot use the network weights") == 1 and "zero prior" in err
+    with pytest.raises(ValueError, match="could not read weights file .*weights.npz"):
+        RME(weights=str(bad))
+    with np.load(WEIGHTS, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files}
+    name = next(k for k in arrays if k.startswith("conv"))
+    arrays[name] = np.full_like(arrays[name], 1e300)                  # finite, but overflows the forward pass
+    huge = tmp_path / "huge.npz"
+    np.savez(huge, **arrays)
+    with pytest.raises(ValueError, match=f"huge.npz: array '{name}'"):
+        RME(weights=str(huge))
+
+
+def test_no_weights_runs_with_the_zero_prior_mean():
+    est = RME(weights=None)
     q, tau = static_window(np.array([0.8, 0.03, 0.0, 0.1]), seed=3)
     e = est.estimate(q, tau)
     np.testing.assert_array_equal(e.prior, np.zeros(4))

@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from dynamics import Robot, skew
+from dynamics import PANDA_XML, Robot, skew
 from rme import RMESettings
 from cpic import JointHold
 from experiments.episodes import measure as record
@@ -326,3 +326,38 @@ def test_window_kinematics_respect_a_joint_reference_angle(tmp_path):
     Q = np.random.default_rng(12).uniform(-1, 1, (5, 3))
     np.testing.assert_allclose(arm.ee_pose(Q)[0], np.stack([arm.ee_pose(q)[0] for q in Q]), atol=1e-12)
     np.testing.assert_allclose(arm.payload_regressor(Q), np.stack([arm.payload_regressor(q) for q in Q]), atol=1e-12)
+
+
+def _panda_with_actuators(tmp_path, make):
+    """panda.xml with each motor line replaced by make(joint_number) (an actuator element as text)."""
+    text = open(PANDA_XML).read()
+    for i in range(1, 8):
+        start = text.index(f'<motor name="tau{i}"')
+        text = text[:start] + make(i) + text[text.index("/>", start) + 2:]
+    path = tmp_path / "panda_variant.xml"
+    path.write_text(text)
+    return Robot.from_xml(str(path), ee="ee")
+
+
+def test_torque_limits_come_from_force_limits_not_from_a_servo_set_point_range(tmp_path):
+    np.testing.assert_array_equal(Robot.panda().torque_limits(), [87.0] * 4 + [12.0] * 3)   # motors: ctrlrange
+    servo = _panda_with_actuators(tmp_path, lambda i: f'<position name="p{i}" joint="joint{i}" kp="300" '
+                                                      f'ctrlrange="-0.07 -0.01"/>')
+    assert np.all(np.isinf(servo.torque_limits()))            # a set point range in rad is no torque limit
+    limited = _panda_with_actuators(tmp_path, lambda i: f'<position name="p{i}" joint="joint{i}" kp="300" '
+                                                        f'ctrlrange="-3 3" forcelimited="true" forcerange="-{i} {i}"/>')
+    np.testing.assert_array_equal(limited.torque_limits(), np.arange(1.0, 8.0))
+    geared = _panda_with_actuators(tmp_path, lambda i: f'<motor name="m{i}" joint="joint{i}" gear="10" ctrlrange="-2 2"/>')
+    np.testing.assert_array_equal(geared.torque_limits(), np.full(7, 20.0))
+
+
+def test_rme_compensation_is_not_capped_by_a_servo_set_point_range(tmp_path):
+    from rme import RME
+    servo = _panda_with_actuators(tmp_path, lambda i: f'<position name="p{i}" joint="joint{i}" kp="300" '
+                                                      f'ctrlrange="-3.14 3.14"/>')
+    est = RME(robot=servo, weights=None, settings=RMESettings(asynchronous=False))
+    theta = np.array([3.0, 0.1, 0.0, 0.1])
+    est.theta, est._phi = theta, np.r_[theta[0], theta[0] * theta[1:]]
+    comp = est.update(Q_READY, np.zeros(7), np.zeros(7))
+    np.testing.assert_allclose(comp, -servo.payload_torque(Q_READY, theta), atol=1e-9)
+    assert np.abs(comp).max() > 3.14

@@ -21,7 +21,7 @@ class VISettings:
     betas: tuple = (0.9, 0.999)        # Adam moment decays, Kingma and Ba 2015 defaults
     adam_eps: float = 1e-8             # Kingma and Ba 2015
     clip_norm: float = 1.0             # global gradient-norm clip, authors' public code (paper_notes)
-    samples: int = 16                  # Monte Carlo samples per step; ours (authors' code: 1), see benchmark()
+    samples: int = 16                  # Monte Carlo samples per step; ours (authors' code: 1), see `python sim.py vi-bench`
     antithetic: bool = True            # ours: samples in pairs (eps, -eps) (variance reduction; samples even)
     control_variate: bool = True       # ours: quadratic control variate for the sigma gradient (Miller et al. 2017)
     max_iterations: int = 2500         # authors' public code
@@ -87,7 +87,7 @@ class Posterior:
     std is the mean-field sigma, which ignores the posterior's correlations and so understates the marginal
     spread of correlated components (from one pose, r along gravity is unobservable and m, r trade off);
     cov is the Laplace covariance H^-1 at the mean (Gauss-Newton Hessian of the log joint), whose diagonal
-    (marginal_std) gives honest intervals. Measured coverage: see test_vi.py and benchmark()."""
+    (marginal_std) gives honest intervals. Measured coverage: test_vi.py and `python sim.py vi-bench`."""
     mean: np.ndarray         # (4,) m [kg], rx, ry, rz [m] in the ee frame
     std: np.ndarray          # (4,)
     cov: np.ndarray          # (4, 4)

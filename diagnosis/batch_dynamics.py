@@ -1,5 +1,5 @@
-"""Window-vectorised rigid-body terms of the nominal arm for model diagnosis (issue 6): forward kinematics and
-recursive Newton-Euler (Eq. 1, tau = M ddq + C dq + G) over T samples at once, the gravity map G(q; g), and the
+"""Window-vectorised rigid-body terms of the nominal arm for model diagnosis: recursive Newton-Euler (Eq. 1,
+tau = M ddq + C dq + G) over T samples at once on Robot.body_frames' kinematics, the gravity map G(q; g), and the
 end-effector payload regressors (Eqs. 4-5 and the 10-parameter rigid body). Checked against dynamics.Robot (MuJoCo)."""
 from __future__ import annotations
 
@@ -39,13 +39,6 @@ def _quat2mat(quat):
     return R.reshape(3, 3)
 
 
-def _rotation(a, angle):
-    """Rodrigues: rotations (T, 3, 3) about the unit axis a (3,) by angle (T,)."""
-    K = skew(a / np.linalg.norm(a))
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
-
-
 def _inertia_times(v):
     """L(v) (T, 3, 6) with I v = L(v) (Ixx, Ixy, Iyy, Ixz, Iyz, Izz) for v (T, 3)."""
     x, y, z = v[:, 0], v[:, 1], v[:, 2]
@@ -71,11 +64,7 @@ class BatchDynamics:
         self.dof = np.full(m.nbody, -1)
         for j in range(m.njnt):
             self.dof[m.jnt_bodyid[j]] = m.jnt_dofadr[j]
-        self.axis, self.anchor = {}, {}
-        for j in range(m.njnt):
-            self.axis[m.jnt_bodyid[j]], self.anchor[m.jnt_bodyid[j]] = m.jnt_axis[j].copy(), m.jnt_pos[j].copy()
-        self.R0 = [_quat2mat(m.body_quat[b]) for b in range(m.nbody)]
-        self.mass, self.ipos, self.body_pos = m.body_mass.copy(), m.body_ipos.copy(), m.body_pos.copy()
+        self.mass, self.ipos = m.body_mass.copy(), m.body_ipos.copy()
         self.inertia = [_quat2mat(m.body_iquat[b]) @ np.diag(m.body_inertia[b]) @ _quat2mat(m.body_iquat[b]).T
                         for b in range(m.nbody)]
         self.armature = m.dof_armature.copy()
@@ -90,29 +79,25 @@ class BatchDynamics:
             raise ValueError("robot: expected at most one joint per body, found a body with several")
 
     def forward(self, q, dq, ddq, g) -> dict:
-        """Kinematics and joint torques tau = M ddq + C dq + G(q; g) (T, n) for q, dq, ddq (T, n), gravity g (3,)."""
+        """Kinematics and joint torques tau = M ddq + C dq + G(q; g) (T, n) for q, dq, ddq (T, n), gravity g (3,).
+        Body poses, joint axes and anchors come from the robot's window forward kinematics (Robot.body_frames);
+        velocities and accelerations are propagated here."""
         T, nb = q.shape[0], self.nbody
+        f = self.robot.body_frames(q)
+        p, R, z, o = f["p"], f["R"], f["z"], f["o"]
         zero3 = np.zeros((T, 3))
-        p, R = [zero3] * nb, [np.broadcast_to(np.eye(3), (T, 3, 3))] * nb
         w, al, a = [zero3] * nb, [zero3] * nb, [np.broadcast_to(-np.asarray(g, float), (T, 3))] * nb
-        z, o, c = np.zeros((T, self.n, 3)), np.zeros((T, self.n, 3)), [zero3] * nb
+        c = [zero3] * nb
         for b in range(1, nb):
-            pa = self.parent[b]
-            pb, Rb = p[pa] + _mv(R[pa], self.body_pos[b]), _mm(R[pa], self.R0[b])
-            wb, alb = w[pa], al[pa]
-            ab = a[pa] + _transport(al[pa], w[pa], pb - p[pa])          # a point fixed on the parent
-            j = self.dof[b]
+            pa, j = self.parent[b], self.dof[b]
             if j >= 0:
-                anchor = pb + _mv(Rb, self.anchor[b])                       # fixed on the parent
-                Rb = _mm(Rb, _rotation(self.axis[b], q[:, j]))
-                pb = anchor - _mv(Rb, self.anchor[b])
-                zj = _mv(Rb, self.axis[b])
-                wb = w[pa] + zj * dq[:, j:j + 1]
-                alb = al[pa] + zj * ddq[:, j:j + 1] + _cross(w[pa], zj * dq[:, j:j + 1])
-                ab = (a[pa] + _transport(al[pa], w[pa], anchor - p[pa])) + _transport(alb, wb, pb - anchor)
-                z[:, j], o[:, j] = zj, anchor
-            p[b], R[b], w[b], al[b], a[b] = pb, Rb, wb, alb, ab
-            c[b] = pb + _mv(Rb, self.ipos[b])
+                zj, anchor, qd = z[:, j], o[:, j], dq[:, j:j + 1]
+                w[b] = w[pa] + zj * qd
+                al[b] = al[pa] + zj * ddq[:, j:j + 1] + _cross(w[pa], zj * qd)
+                a[b] = (a[pa] + _transport(al[pa], w[pa], anchor - p[pa])) + _transport(al[b], w[b], p[b] - anchor)
+            else:                                                        # welded: a point fixed on the parent
+                w[b], al[b], a[b] = w[pa], al[pa], a[pa] + _transport(al[pa], w[pa], p[b] - p[pa])
+            c[b] = p[b] + _mv(R[b], self.ipos[b])
         return self._backward(dict(p=p, R=R, w=w, al=al, a=a, c=c, z=z, o=o), ddq)
 
     def _backward(self, k, ddq):

@@ -1,6 +1,6 @@
-"""Compare a robot model with a log, find the missing physical effect, add it, watch the error fall (issue 6: the
-nominal Eq. 1 model and the effects of effects.py; held-out forward selection). CLI: `python diagnose.py LOG [--add
-EFFECT ...] [--json] [--plot FILE]`, `python diagnose.py --bench`; `python sim.py hidden-effect` for the demo."""
+"""Compare a robot model with a log, find the missing physical effect, add it, watch the error fall (the
+nominal Eq. 1 model and the effects of effects.py; held-out forward selection). CLI: `python rme.py diagnose LOG
+[--add EFFECT ...] [--json] [--plot FILE]`; `python sim.py hidden-effect` for the demo."""
 from __future__ import annotations
 
 import argparse
@@ -218,7 +218,7 @@ def _jsonable(x):
 
 
 # --- CLI ---------------------------------------------------------------------------------------------
-def main(argv=None, prog: str = "diagnose.py") -> int:
+def main(argv=None, prog: str = "rme.py diagnose") -> int:
     """`diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]`: compare -> diagnose -> (add -> compare). Returns the
     exit status (0 ok, 2 bad input); prog names the command in --help (e.g. "rme.py diagnose")."""
     names = sorted(Model(Robot.panda()).library)

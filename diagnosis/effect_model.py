@@ -1,4 +1,4 @@
-"""A robot model as a sum of effects (issue 6; Eq. 1 plus the effects of effects.py), fitted by least squares, and the
+"""A robot model as a sum of effects (Eq. 1 plus the effects of effects.py), fitted by least squares, and the
 correction it offers RME: the fitted torques beyond the nominal model in the paper's tau_ext sign (Eq. 1)."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The physical effects a robot model is made of (issue 6; Eq. 1 split into parts, the paper's payload Eqs. 4-5, and
+"""The physical effects a robot model is made of (Eq. 1 split into parts, the paper's payload Eqs. 4-5, and
 the Sec. 6 limitations: friction, offsets, rotor inertia, a tilted base). Each is a regressor block linear in its
 parameters, in the sign of the measured joint torque tau_J, so masses and friction coefficients come out positive."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Held-out (2-fold, interleaved blocks) least-squares fits of sets of effects for model diagnosis (issue 6): per-block,
+"""Held-out (2-fold, interleaved blocks) least-squares fits of sets of effects for model diagnosis: per-block,
 per-joint normal equations computed once, so every candidate set is scored by small solves, never by refitting."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 6 tests: logs, the effect library, compare/diagnose on simulated logs with hidden effects, the correction."""
+"""Tests of the diagnosis tool: logs, the effect library, compare/diagnose on simulated logs with hidden effects, the correction."""
 import copy
 import dataclasses
 import functools
@@ -231,7 +231,7 @@ def test_compare_locates_friction_by_velocity_sign():
     assert np.all(c.fit < 100) and len(c.worst) == 3
 
 
-# --- better estimates from a better model (item 7) -------------------------------------------------------
+# --- better estimates from a better model -------------------------------------------------------------
 def test_correction_is_the_fitted_torque_in_tau_ext_sign():
     log = recorded("offset")[1]
     model = Model.nominal(ROBOT).add("offset")

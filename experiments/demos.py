@@ -33,7 +33,7 @@ def hold(args):
             plant.open_viewer()
         robot = plant.robot
         p_star, R_star = robot.ee_pose(Q_READY)
-        oracle = ExactCompensation(robot, THETA, start=t_comp, dt=plant.dt) if on else None
+        oracle = ExactCompensation(robot, THETA, start=t_comp, clock=lambda: plant.t) if on else None
         log = run_loop(plant, CPIC(robot, Attractor(p_star, R_star)), seconds, estimator=oracle,
                        events=[PayloadChange(t_attach, THETA[0], THETA[1:])], q0=Q_READY, tau_ext_to_controller=False)
         runs[name] = dict(t=log.t, pos_mm=1e3 * np.linalg.norm(log.p - p_star, axis=1),

@@ -77,16 +77,17 @@ class Record:
 
 class ExactCompensation:
     """An oracle 'estimator': from time `start` [s] on it compensates the true payload theta (4,) exactly,
-    -robot.payload_torque(q, theta): the best any estimator can do. One update per 1 ms step, the first at t = 0."""
+    -robot.payload_torque(q, theta): the best any estimator can do. Time: clock() if given (e.g. the plant's),
+    else one update per dt, the first at t = 0."""
 
-    def __init__(self, robot, theta, start=0.0, dt=1e-3):
-        self.robot, self.start, self.dt = robot, float(start), float(dt)
+    def __init__(self, robot, theta, start=0.0, dt=1e-3, clock=None):
+        self.robot, self.start, self.dt, self.clock = robot, float(start), float(dt), clock
         self.theta_true = np.asarray(theta, dtype=float)
         self.theta, self.history, self._k = np.zeros(4), [], 0
 
     def update(self, q, dq, tau_ext):
-        t, self._k = self._k * self.dt, self._k + 1
-        if t < self.start - 1e-9:
+        t, self._k = (self._k * self.dt if self.clock is None else self.clock()), self._k + 1
+        if t < self.start:
             return None
         self.theta = self.theta_true
         return -self.robot.payload_torque(q, self.theta_true)

@@ -169,8 +169,8 @@ def limit_cycle(args):
     variants = [("without", False, None), ("with", True, None)]
     if args.preset == "realistic":
         # moving along the cycle, joint friction changes with the velocity all the time and the detector never sees
-        # a settled torque; the robot's friction fitted from a log (diagnose.py) removes that
-        print("fitting the robot's joint friction on a 12 s excitation log (diagnose.py) ...")
+        # a settled torque; the robot's friction fitted from a log (the diagnosis tool) removes that
+        print("fitting the robot's joint friction on a 12 s excitation log (the diagnosis tool) ...")
         config = PlantConfig.realistic(np.random.default_rng(args.seed))      # the robot run() builds
         variants.append(("with + friction", True, fit_friction_model(config, seed=args.seed + 1)))
     runs = {name: run(args, seconds, [(t_attach, theta, None)], policies=[(0.0, cycle)], use_rme=on,
@@ -250,7 +250,7 @@ def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1
 
 def better_model(args):
     """Better estimates from a better model: joint friction holds part of a new load while the arm settles, so RME
-    reads it a few % light; friction fitted by diagnose.py on a 12 s excitation log of the same robot, subtracted
+    reads it a few % light; friction fitted by the diagnosis tool on a 12 s excitation log of the same robot, subtracted
     from tau_ext, removes that bias."""
     rng = np.random.default_rng(args.seed)
     config = PlantConfig.realistic(rng)
