@@ -9,6 +9,9 @@ import numpy as np
 
 from dynamics import pseudo_wrench
 
+MAX_TORQUE = 1e4    # Nm: no joint torque sensor reads more; larger samples are refused (their squares would overflow
+                    #   the running sums long before 1e154 Nm, and they are faults, not loads)
+
 
 @dataclass(frozen=True)
 class DetectorSettings:
@@ -102,12 +105,30 @@ class Detector:
         """Forget the history (the next detection needs a full window again)."""
         self.__init__(self.settings, self.n)
 
+    def shift(self, d_tau, d_force):
+        """Re-express the buffered samples as if d_tau (n,) [Nm] and d_force (3,) [N] had been subtracted from each:
+        after the compensation changes by d_tau, the detector keeps watching the residual without a blind window."""
+        N, n, k = self.settings.window, self.n, self.count
+        d_tau, d_force = np.asarray(d_tau, dtype=float), np.asarray(d_force, dtype=float)
+        have = min(k, N)
+        rows = (k - have + np.arange(have)) % N                  # the buffered samples, oldest first
+        x = self._raw[rows]
+        x[:, 0] += -2.0 * x[:, 1:1 + n] @ d_tau + d_tau @ d_tau
+        x[:, 1:1 + n] -= d_tau
+        x[:, 1 + n:] -= d_force
+        self._raw[rows] = x
+        self._prefix[:] = 0.0                                    # rebuild the prefix sums from the samples held
+        P = np.cumsum(x, axis=0)
+        self._prefix[(k - have + 1 + np.arange(have)) % (N + 1)] = P
+        self._prefix[(k - have) % (N + 1)] = 0.0
+
     def update(self, tau_ext, force=None, J=None) -> bool:
         """Add one sample: tau_ext (n,) [Nm, paper sign] and either the world-frame pseudo-force (3,) [N] or the
         Jacobian J (6, n) to compute it from. Returns True when a load change is detected at this sample."""
         tau = np.asarray(tau_ext, dtype=float)
-        if tau.shape != (self.n,) or not np.all(np.isfinite(tau)):
-            raise ValueError(f"tau_ext: expected finite values of shape ({self.n},), found {tau.shape} {tau}")
+        if tau.shape != (self.n,) or not np.all(np.isfinite(tau)) or np.abs(tau).max() > MAX_TORQUE:
+            raise ValueError(f"tau_ext: expected finite values within +-{MAX_TORQUE:g} Nm of shape ({self.n},), found "
+                             f"{tau.shape} {tau}")
         if (force is None) == (J is None):
             raise ValueError("force, J: expected exactly one of them, found "
                              f"{'both' if force is not None else 'neither'}")
@@ -117,7 +138,7 @@ class Detector:
                 raise ValueError(f"J: expected finite values of shape (6, {self.n}), found {J.shape}")
             force = pseudo_force(J, tau, self.settings.lam)
         force = np.asarray(force, dtype=float)
-        if force.shape != (3,) or not np.all(np.isfinite(force)):
+        if force.shape != (3,) or not np.all(np.isfinite(force)) or np.abs(force).max() > 1e3 * MAX_TORQUE:
             raise ValueError(f"force: expected finite values of shape (3,), found {force.shape} {force}")
         return self._push(tau, force)
 

@@ -28,6 +28,8 @@ class RMESettings:
     asynchronous: bool = True      # ours: compensation starts once the estimate's own wall time has passed, as if
                                    #   the estimate ran beside the loop (False: applied on the detection sample)
     max_mass: float = 3.0          # kg, Panda's rated payload: the compensation never assumes more
+    max_com: float = 0.3           # m, |rx|, |ry|, |rz| of a payload a hand can carry (ours); an estimate with its
+                                   #   CoM further out is not a payload (a push, a bias change) and is not applied
     min_explained: float = 0.9     # ours: a detection is applied only if the new estimate explains at least this
                                    #   share of the torque change in its window; a change of the pose-dependent bias
                                    #   after a large move (not a load) explains 0.6-0.7, real loads 0.97-1.0 (sim.py
@@ -35,7 +37,19 @@ class RMESettings:
     refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
                                    #   part of the load while it moved: the first estimate reads light by a few %)
     rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
-    refine_within: float = 2.0     # s after the detection; later, no estimate at rest is made
+    refine_within: float = 2.0     # s after the detection; later, no estimate at rest is made (the monitor checks)
+    monitor: bool = True           # ours: while the arm is still, check that the compensated estimate explains
+                                   #   tau_ext; if it persistently does not, estimate again (see RME.update)
+    monitor_threshold: float = 0.3  # Nm, |mean residual - its level when last explained| that counts as unexplained
+                                   #   (a 0.1 kg change moves the Panda's joint torques by about 0.5 Nm at the ready
+                                   #   pose; the realistic sensor's pose-dependent bias drifts by < 0.1 Nm at rest)
+    monitor_window: int = 300      # samples (300 ms): the arm calm and the residual level steady this long
+    monitor_speed: float = 0.02    # rad/s: every joint slower than this counts as calm for the monitor (friction
+                                   #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
+    first_explained: float = 0.97  # the monitor's gate at the first rest, against no payload at all: real loads
+                                   #   explain 0.97-1.0 there, the realistic sensor's bias alone about 0.5
+    pose_tolerance: float = 0.1    # rad: within this of the pose where a level was explained, that level still holds
+    max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
     vi: vi.VISettings = field(default_factory=vi.VISettings)
     detector: DetectorSettings = field(default_factory=DetectorSettings)
 
@@ -46,8 +60,13 @@ class RMESettings:
                    f"1..{settled} samples (the detector checks those precede the change)"),
                   ("rate", self.rate, self.rate > 0, "a rate > 0 Hz"),
                   ("max_mass", self.max_mass, self.max_mass > 0, "a mass > 0 kg"),
+                  ("max_com", self.max_com, self.max_com > 0, "a distance > 0 m"),
                   ("min_explained", self.min_explained, self.min_explained <= 1, "a share <= 1"),
                   ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
+                  ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
+                  ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
+                   f"{self.window}..{keep} samples"),
+                  ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
                   ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s")]
         for name, value, ok, want in checks:
             if not ok or (isinstance(value, float) and np.isnan(value)):
@@ -68,8 +87,10 @@ class Estimate:
     t: float = float("nan")        # stream time of the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection", "at rest" (once the arm is still), "at deadline" or "window"
+    kind: str = "window"             # "detection", "at rest" (once the arm is still), "monitor"
+                                     #   (the compensation no longer explained tau_ext at rest) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
+    reason: str = ""                 # why it was not applied (update only)
 
 
 class RME:
@@ -87,11 +108,18 @@ class RME:
         self.detector = Detector(settings.detector, n=self.robot.n)
         n, keep = self.robot.n, settings.detector.window
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
+        self._r = np.zeros((keep, n))                  # ring of residuals tau_ext - tau_mm(q, theta) (- correction)
         self._k = 0                                    # samples seen
+        self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
+        self._level = None                             # residual level (n,) when the estimate last explained tau_ext
+        self._level_q = None                           # the pose (n,) where that level was seen
+        self._muted = None                             # a steady level the monitor found not to be a payload
+        self._last = np.zeros(n)                       # the last compensation returned
         self.theta = np.zeros(4)                       # the estimate being compensated
         self._phi = np.zeros(4)                        # its phi = (m, m r), kept with it for the 1 kHz loop
         self._pending = None                           # (sample index when it applies, Estimate)
         self._refine, self._still = None, 0            # a pending estimate at rest; samples the arm has been still
+        self._calm = 0                                 # samples the arm has been slower than monitor_speed
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
@@ -140,12 +168,24 @@ class RME:
     # --- streaming -----------------------------------------------------------------------------
     def update(self, q, dq, tau_ext) -> np.ndarray:
         """Feed one 1 kHz sample (paper sign tau_ext); returns the compensation torque (n,) = -tau_mm(q, theta_hat).
-        Never NaN, never beyond the torque limits; re-estimates at every change the detector finds."""
-        n, keep = self.robot.n, self.settings.detector.window
+        Never NaN, never beyond the torque limits. A sample with a non-finite or absurd torque (beyond
+        settings.max_abs_torque) is dropped, counted in `dropped`, and the last compensation is returned.
+
+        Two paths lead to an estimate of the total payload: the event detector (Alg. 1, on the residual the current
+        estimate leaves) and, as a backstop, the consistency monitor: once the arm has been still for
+        monitor_window samples with a steady residual level, that level must stay within monitor_threshold of the
+        level it had when the estimate last explained tau_ext; if not, RME estimates again (kind "monitor"). A change
+        the detector missed, a wrong estimate or a stale one is so corrected within about monitor_window of rest."""
+        n, keep, s = self.robot.n, self.settings.detector.window, self.settings
         q, _ = as_states("q", q, n, allow_window=False)
-        tau, _ = as_states("tau_ext", tau_ext, n, allow_window=False)
         dq, _ = as_states("dq", dq, n, allow_window=False)
-        q, dq, tau = q[0], dq[0], tau[0]
+        tau = np.asarray(tau_ext, dtype=float)
+        if tau.shape != (n,):
+            raise ValueError(f"tau_ext: expected shape ({n},), found {tau.shape}")
+        if not np.all(np.isfinite(tau)) or np.abs(tau).max() > s.max_abs_torque:
+            self.dropped += 1                          # a sensor fault, not a load: never reaches the estimator
+            return self._last
+        q, dq = q[0], dq[0]
         i = self._k % keep
         self._q[i], self._dq[i], self._tau[i] = q, dq, tau
         self._k += 1
@@ -155,68 +195,138 @@ class RME:
         Y = self.robot.payload_regressor_from(J, R)
         tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
-        fired = self.detector.update(r, pseudo_force(J, r, self.settings.detector.lam, check=False)) and self._k >= keep
-        if fired and self._refine is None:
+        self._r[i] = r
+        if self.detector.update(r, pseudo_force(J, r, s.detector.lam, check=False)) and self._k >= keep:
             self._on_detection()
-        # while an estimate at rest is pending, the arm is still moving in answer to the last compensation and the
-        # detector's reference is not settled: detections are ignored, and the estimate at rest (or, if the arm
-        # never rests, the one at the deadline) covers any change meanwhile, being referred to before the change
-        self._still = self._still + 1 if np.abs(dq).max() < self.settings.rest_speed else 0
+        speed = np.abs(dq).max()
+        self._still = self._still + 1 if speed < s.rest_speed else 0
+        self._calm = self._calm + 1 if speed < s.monitor_speed else 0
         if self._refine is not None and self._pending is None:
-            if self._still >= self.settings.window:
-                self._on_rest("at rest")
+            if self._still >= s.window:
+                self._on_rest()
             elif self._k > self._refine["deadline"]:
-                self._on_rest("at deadline")
+                self._refine = None                    # the arm never rested: the monitor checks it when it does
+        elif s.monitor and self._pending is None and self._calm >= s.monitor_window and self._k % 10 == 0:
+            self._check_consistency()
         if self._pending is not None and self._k >= self._pending[0]:
-            self.theta = _safe_theta(self._pending[1].mean, self.theta, self.settings.max_mass)
-            self._phi = vi.phi_of(self.theta)
-            self._pending[1].applied = self._k / self.settings.rate
-            self._pending, self._still = None, 0         # the arm answers the new compensation: wait for rest again
+            self._apply(*self._pending[1:], Y, J)
             tau_mm = Y @ self._phi
-        return np.clip(-tau_mm, -self._limit, self._limit)
+        self._last = np.clip(-tau_mm, -self._limit, self._limit)
+        return self._last
+
+    def _apply(self, e, level, Y, J):
+        """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual, whose
+        expected level is `level` (when known)."""
+        self._muted = None
+        if level is not None:
+            self._set_level(level)
+        theta = _safe_theta(e.mean, self.theta, self.settings.max_mass)
+        d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
+        self.theta, self._phi = theta, vi.phi_of(theta)
+        self.detector.shift(d, pseudo_force(J, d, self.settings.detector.lam, check=False))
+        self._r -= d                                                   # the arm is near this pose over the buffer
+        e.applied = self._k / self.settings.rate
+        self._pending, self._still, self._calm = None, 0, 0   # the arm answers the new compensation: wait for rest
 
     def _buffer(self):
-        """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction."""
+        """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""
         keep = self.settings.detector.window
         order = (np.arange(keep) + self._k) % keep
         Q, TAU = self._q[order], self._tau[order]
         if self.correction is not None:                               # the effects a better model explains
             TAU = TAU - self.correction.correction(Q, self._dq[order])
-        return Q, TAU
+        return Q, TAU, self._r[order]
+
+    def _set_level(self, level):
+        self._level, self._level_q, self._muted = level, self._q[(self._k - 1) % len(self._q)].copy(), None
+
+    def _bias(self, R_ref, q_now):
+        """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
+        samples R_ref, unless the estimate did not explain them (a push, a change it missed) while the arm is back
+        near the pose (within pose_tolerance) of a level it did explain: then that level."""
+        s = self.settings
+        local = R_ref.mean(axis=0)
+        if self._level is None or np.linalg.norm(local - self._level) <= s.monitor_threshold:
+            return local
+        if self._muted is not None and np.linalg.norm(local - self._muted) <= s.monitor_threshold:
+            return local                     # a state already judged not to be a payload (a drifted bias, a push)
+        if np.abs(q_now - self._level_q).max() > s.pose_tolerance:
+            return local                     # another pose: the pose-dependent bias has moved on
+        return self._level
 
     def _on_detection(self):
-        """Estimate the total payload from the newest window, referred to the torque before the change."""
+        """Estimate the total payload from the newest window, referred to the torque before the change. A change
+        during a pending estimate at rest supersedes it."""
         s = self.settings
-        Q, TAU = self._buffer()
-        q_ref, tau_ref = Q[:s.reference], TAU[:s.reference]
-        # bias = what the previous estimate does not explain before the change: tau_ref - tau_mm(q_ref, theta_prev)
-        bias = (tau_ref - self.robot.payload_regressor(q_ref) @ self._phi).mean(axis=0)
-        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection")
+        Q, TAU, Rs = self._buffer()
+        bias = self._bias(Rs[:s.reference], Q[-1])
+        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection", level=bias)
+        self._refine = None
         if e.accepted and s.refine:
             self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
 
-    def _on_rest(self, kind):
+    def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
-        friction no longer holds part of the load, and the arm is back near the pose it had before the change. If it
-        never rests within refine_within, estimate at the deadline so that no change in between is lost."""
+        friction no longer holds part of the load, and the arm is back near the pose it had before the change."""
         s, r = self.settings, self._refine
         self._refine = None
-        Q, TAU = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], kind)
-        self.detector.reset()               # its reference predates the estimate: start a fresh window
+        Q, TAU, _ = self._buffer()
+        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest", level=r["bias"])
 
-    def _change(self, Qw, Tw, theta_before, kind) -> Estimate:
-        """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted."""
+    def _check_consistency(self):
+        """The monitor (see update): the residual's level over the last monitor_window samples, if steady. The first
+        level is estimated against no payload at all (RME assumes it starts unloaded) with the stricter gate
+        first_explained; later ones against the level last explained."""
+        s = self.settings
+        Q, TAU, Rs = self._buffer()
+        level, recent = Rs[-s.monitor_window:].mean(axis=0), Rs[-s.monitor_window // 3:].mean(axis=0)
+        if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
+            return                                                     # still changing: not a level yet
+        near = lambda a, b: b is not None and np.linalg.norm(a - b) <= s.monitor_threshold
+        if near(level, self._level):
+            self._set_level(level)                                     # explained: follow the slow bias drift
+            return
+        if near(level, self._muted):
+            return                                                     # judged before: not a payload
+        first = self._level is None
+        reference = np.zeros(self.robot.n) if first else self._level
+        if first:                                # against no payload: only a clear payload counts
+            accept = lambda e, Tw, Y: e.explained >= s.first_explained
+        else:                                    # the new estimate must make the level consistent again
+            gap = np.linalg.norm(level - self._level)
+            accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(e.mean)).mean(axis=0)) <= min(
+                s.monitor_threshold, 0.5 * gap)
+        e = self._change(Q[-s.window:], TAU[-s.window:] - reference, self.theta, "monitor", accept,
+                         level=None if first else reference)
+        if e.accepted and first:                                       # what the payload leaves is the bias
+            Y = self.robot.payload_regressor(Q[-s.window:])
+            self._pending[2] = (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0)
+        elif first:
+            self._set_level(level)                                     # no payload: the level is the bias
+            self.history.pop()                                         # (establishing it is not an estimate)
+        elif not e.accepted:
+            self._muted = level
+        self._calm = 0
+
+    def _change(self, Qw, Tw, theta_before, kind, accept=None, level=None) -> Estimate:
+        """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted
+        (accept(e, Tw, Y), default: explained share >= min_explained); level: the residual level it will leave."""
         s, k = self.settings, self._k
         e, Y = self._estimate(Qw, Tw)
         e.t, e.kind = k / s.rate, kind
         before = np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2)        # what the estimate before leaves unexplained
         e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
-        e.accepted = bool(e.explained >= s.min_explained)
+        plausible = bool(np.all(np.abs(e.mean[1:]) <= s.max_com))
+        e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Y))
+        if not plausible:
+            e.reason = f"its CoM {np.round(e.mean[1:], 3).tolist()} m is beyond max_com = {s.max_com} m"
+        elif not e.accepted:
+            e.reason = (f"explains only {100 * e.explained:.0f} % of the change" if accept is None else
+                        "it does not make the compensation consistent with tau_ext")
         self.history.append(e)
         if e.accepted:
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
-            self._pending = (k + delay, e)
+            self._pending = [k + delay, e, level]
         return e
 
 

@@ -1,19 +1,22 @@
-"""Robot logs for model diagnosis (issue 6): read .npz or libfranka-style CSV, drop stale repeats, resample to a
-uniform grid, smooth (Savitzky-Golay) and differentiate; write .npz / CSV. tau_ext is kept in the paper's sign
-(Eq. 1, tau_ext = model - tau_J); libfranka's tau_ext_hat_filtered (= tau_J - model) is flipped on load."""
+"""Robot logs for model diagnosis: read .npz, libfranka logger or lab CSV logs (formats and units: load_log), drop
+bad and stale rows, resample, smooth (Savitzky-Golay) and differentiate; write .npz / CSV. tau_ext in the paper's
+sign (Eq. 1, tau_ext = model - tau_J); libfranka's tau_ext_hat_filtered (= tau_J - model) is flipped on load."""
 from __future__ import annotations
 
 import csv
 import dataclasses
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.signal import savgol_filter
 
 SIGNS = ("paper", "libfranka")                 # tau_ext conventions a log may declare
-TIME_COLUMNS = {"t": 1.0, "time": 1.0, "time_s": 1.0, "timestamp": 1.0, "t_ms": 1e-3, "time_ms": 1e-3}
+TIME_COLUMNS = {"t": 1.0, "time": 1.0, "time_s": 1.0, "timestamp": 1.0,      # s per unit of each time column
+                "t_ms": 1e-3, "time_ms": 1e-3, "duration": 1e-3}              # duration: ms since the start (lab)
+LIBFRANKA_TIME = 1e-3                          # franka::logToCSV writes `time` as RobotState::time.toMSec(): ms
 
 
 @dataclass(frozen=True)
@@ -24,12 +27,17 @@ class LogConfig:
     sg_order: int = 3              # polynomial order of the Savitzky-Golay fit
     min_samples: int = 200         # fewer samples left after cleaning: too short to fit (0.2 s at 1 kHz)
     drop_nan: bool = False         # rows with NaN/inf: False raises ValueError, True drops them (counted in info)
+    max_gap: float = 0.05          # s, longest time step interpolated over; real 1 kHz logs step 0.7-8.8 ms
+                                   # (panda_facts.md); a longer gap is refused, one sg_window without data
+    max_bad_rows: float = 0.01     # fraction of CSV data rows that may be malformed (a wrong number of fields or a
+                                   # non-number): dropped and counted in info["bad_rows"]; more raises ValueError
 
 
 @dataclass(frozen=True)
 class Log:
     """A uniform log: t (T,) [s]; q, dq, ddq (T, n) [rad, rad/s, rad/s^2]; tau_J and tau_ext (T, n) [Nm] or None,
-    tau_ext in the paper's sign. info: what loading did (source, stale rows dropped, NaN rows dropped, dt, filter)."""
+    tau_ext in the paper's sign. info: what loading did (source, time column, malformed, NaN and stale rows
+    dropped, dt, filter)."""
     t: np.ndarray
     q: np.ndarray
     dq: np.ndarray
@@ -54,18 +62,31 @@ class Log:
 
 # --- reading -----------------------------------------------------------------------------------------
 def load_log(path, config: LogConfig = LogConfig()) -> Log:
-    """Read a .npz or .csv robot log and prepare it (see prepare)."""
-    path = os.fspath(path)
+    """Read a robot log and prepare it (see prepare). Accepted files, tau_ext always returned in the paper's sign:
+
+    - .npz: t [s], q, dq [rad, rad/s], optional ddq, tau_J and/or tau_ext [Nm] (T, n) (read_npz);
+    - CSV with a header line of comma-separated column names and one row per sample (read_csv):
+      * libfranka's logger (franka::logToCSV): `time` in ms, `state.q[i]`, `state.dq[i]`, `state.tau_J[i]`,
+        `state.tau_ext_hat_filtered[i]` (libfranka sign, flipped), other state./cmd. columns ignored;
+      * q[i] (or q_i) style names with `t`/`time`/`time_s`/`timestamp` in s, `t_ms`/`time_ms` in ms, or a lab
+        logger's `duration` in ms since the start; rows with a wrong number of fields or a non-number are dropped
+        and counted in info["bad_rows"] (their file lines in info["bad_lines"]), up to config.max_bad_rows.
+    A time gap longer than config.max_gap is refused with ValueError (not split, not interpolated)."""
+    try:
+        path = os.fspath(path)
+    except TypeError:
+        raise ValueError(f"path: expected a log file path (str or os.PathLike), found {type(path).__name__} "
+                         f"{path!r}") from None
     if not os.path.isfile(path):
         raise ValueError(f"path: expected a log file (.npz or .csv), found no file at {path!r}")
     ext = os.path.splitext(path)[1].lower()
     if ext == ".npz":
-        raw = read_npz(path)
+        raw, notes = read_npz(path), {"format": "npz", "time_column": "t [s]", "bad_rows": 0}
     elif ext == ".csv":
-        raw = read_csv(path)
+        raw, notes = read_csv(path, config.max_bad_rows)
     else:
         raise ValueError(f"path: expected a .npz or .csv log, found extension {ext!r}")
-    return prepare(raw, config, source=path)
+    return prepare(raw, config, source=path, notes=notes)
 
 
 def read_npz(path) -> dict:
@@ -92,30 +113,12 @@ def read_npz(path) -> dict:
     return raw
 
 
-def read_csv(path) -> dict:
-    """Raw arrays of a CSV log whose header uses libfranka RobotState names with indices (q[0]..q[n-1], dq[i],
-    tau_J[i], tau_ext_hat_filtered[i]; also accepted: name_i, and ddq[i] or tau_ext[i] in the paper's sign) and a
-    time column (t, time, time_s, timestamp in s; t_ms, time_ms in ms). Empty or unparsable cells read as NaN."""
-    with open(path, newline="") as f:
-        header = next(csv.reader(f), None)
-    if not header:
-        raise ValueError(f"csv: expected a header row in {path!r}, found an empty file")
-    names = [h.strip() for h in header]
-    with open(path, newline="") as f:
-        if sum(1 for line in f if line.strip()) < 2:
-            raise ValueError(f"log: expected data rows, found none (a header only) in {path!r}")
-    try:                                       # fast path; genfromtxt reads empty or bad cells as NaN
-        body = np.loadtxt(path, delimiter=",", skiprows=1, dtype=float, ndmin=2)
-    except ValueError:
-        body = np.genfromtxt(path, delimiter=",", skip_header=1, dtype=float, invalid_raise=False)
-    body = body.reshape(-1, len(names)) if body.size else np.empty((0, len(names)))
-    groups, time_col = {}, None
-    for col, name in enumerate(names):
-        m = re.fullmatch(r"([A-Za-z_]+?)(?:\[(\d+)\]|_(\d+))", name)
-        if m:
-            groups.setdefault(m.group(1), {})[int(m.group(2) or m.group(3))] = col
-        elif name in TIME_COLUMNS and time_col is None:
-            time_col = (col, TIME_COLUMNS[name])
+def read_csv(path, max_bad_rows: float = LogConfig.max_bad_rows) -> tuple[dict, dict]:
+    """(raw arrays, notes) of a CSV log (formats: load_log). Columns are joint vectors name[i] or name_i, with an
+    optional `state.` prefix (libfranka's logger; `cmd.` columns are kept apart and unused), and one time column.
+    Empty cells read as NaN (see LogConfig.drop_nan); malformed rows are dropped and counted in notes."""
+    names = _csv_header(path)
+    groups, time_col, libfranka = _csv_columns(names, path)
     n = len(groups.get("q", {}))
     missing = [] if time_col else [f"a time column ({', '.join(TIME_COLUMNS)})"]
     for key in ("q", "dq"):
@@ -127,31 +130,104 @@ def read_csv(path) -> dict:
         missing += [f"{key}[{i}]" for i in range(n) if i not in groups[key]]
     if missing:
         raise ValueError(f"csv: missing columns {', '.join(missing)} in {path!r}")
-    raw = {"t": body[:, time_col[0]] * time_col[1]}
+    body, bad_lines = _csv_body(path, len(names), max_bad_rows)
+    col, name = time_col
+    scale = LIBFRANKA_TIME if libfranka and name == "time" else TIME_COLUMNS[name]
+    raw = {"t": body[:, col] * scale}
     for key in ("q", "dq", "ddq", "tau_J", "tau_ext"):
         if key in groups:
             raw[key] = body[:, [groups[key][i] for i in range(n)]]
     if "tau_ext_hat_filtered" in groups and "tau_ext" not in raw:
         raw["tau_ext"] = -body[:, [groups["tau_ext_hat_filtered"][i] for i in range(n)]]   # libfranka sign
-    return raw
+    unit = "ms" if scale == 1e-3 else "s"
+    notes = {"format": "libfranka logger" if libfranka else "csv", "time_column": f"{name} [{unit}]",
+             "bad_rows": len(bad_lines), "bad_lines": bad_lines[:10]}
+    return raw, notes
+
+
+def _csv_header(path):
+    """Stripped column names of the first line of a CSV file."""
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            header = next(csv.reader(f), None)
+            rows = sum(1 for line in f if line.strip())
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"path: could not read the log {path!r} as CSV text: {type(err).__name__}: {err}") from None
+    if not header:
+        raise ValueError(f"csv: expected a header row in {path!r}, found an empty file")
+    if rows == 0:
+        raise ValueError(f"log: expected data rows, found none (a header only) in {path!r}")
+    return [h.strip() for h in header]
+
+
+def _csv_body(path, width, max_bad_rows):
+    """(body (R, width), file line numbers of the dropped malformed rows). Empty cells read as NaN."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")             # any loadtxt complaint: parse row by row below
+        try:                                       # fast path: a clean file
+            body = np.loadtxt(path, delimiter=",", skiprows=1, dtype=float, ndmin=2)
+            if body.shape[1] == width:
+                return body, []
+        except (ValueError, UserWarning):
+            pass
+    rows, bad = [], []
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        next(reader)
+        for cells in reader:
+            if not any(c.strip() for c in cells):
+                continue                           # blank line
+            try:
+                if len(cells) != width:
+                    raise ValueError(f"{len(cells)} fields, expected {width} as in the header")
+                rows.append([float(c) if c.strip() else np.nan for c in cells])
+            except ValueError as err:
+                bad.append((reader.line_num, str(err)))
+    total = len(rows) + len(bad)
+    if len(bad) > max_bad_rows * total:
+        line, why = bad[0]
+        raise ValueError(f"csv: {len(bad)} of {total} data rows of {path!r} are malformed (first at line {line}: "
+                         f"{why}); expected at most a fraction max_bad_rows = {max_bad_rows} (is the delimiter a "
+                         "comma and the decimal mark a point?)")
+    return np.array(rows, dtype=float).reshape(-1, width), [line for line, _ in bad]
+
+
+def _csv_columns(names, path):
+    """({joint-vector name: {index: column}}, (time column, its name) or None, libfranka logger header?)."""
+    groups, time_col, libfranka = {}, None, False
+    for col, name in enumerate(names):
+        m = re.fullmatch(r"(?:(state|cmd)\.)?([A-Za-z_]+?)(?:\[(\d+)\]|_(\d+))", name)
+        if m:
+            libfranka |= m.group(1) == "state"
+            key = m.group(2) if m.group(1) in (None, "state") else f"{m.group(1)}.{m.group(2)}"
+            i = int(m.group(3) or m.group(4))
+            if i in groups.setdefault(key, {}):
+                raise ValueError(f"csv: expected each column once, found {name!r} in columns "
+                                 f"{groups[key][i]} and {col} of {path!r}")
+            groups[key][i] = col
+        elif name in TIME_COLUMNS and time_col is None:
+            time_col = (col, name)
+    return groups, time_col, libfranka
 
 
 # --- preparing ---------------------------------------------------------------------------------------
-def prepare(raw: dict, config: LogConfig = LogConfig(), source: str = "arrays") -> Log:
+def prepare(raw: dict, config: LogConfig = LogConfig(), source: str = "arrays", notes: dict | None = None) -> Log:
     """Check a raw log and make it uniform: NaN rows -> error (or dropped, counted), stale repeats dropped, time
-    checked strictly increasing, resampled onto t0 + k dt by linear interpolation; then, unless the log has ddq,
+    checked strictly increasing and free of gaps longer than config.max_gap (ValueError naming the gap; the log
+    is not split), resampled onto t0 + k dt by linear interpolation; then, unless the log has ddq,
     one Savitzky-Golay smoother on dq and on the torques, and ddq = central differences of the smoothed dq, so
     tau_J and M ddq pass the same filter (parallel filtering; regressors of sharp effects get it too, effects.py).
 
     Stale rule: a row whose q, dq and tau_J (tau_ext if no tau_J) all equal the previous row's exactly is a repeated
     packet and is dropped, whatever its time stamp (a real sensor's noise never repeats 3n values; an arm truly at
-    rest loses nothing, since interpolation restores the same values)."""
+    rest loses nothing, since interpolation restores the same values), so a gap is measured between the recorded
+    time stamps, stale rows included. notes: what reading the file found (load_log), copied into info."""
     raw = _check_raw(raw)
-    info = {"source": source, "rows": len(raw["t"])}
+    info = {"source": source, "rows": len(raw["t"]), "bad_rows": 0, **(notes or {})}
     raw, info["nan_rows"] = _drop_nan(raw, config.drop_nan)
     keep = ~_stale_rows(raw)
     info["stale_rows"] = int((~keep).sum())
-    t, out, info["dt"], info["resampled"] = _resample({k: v[keep] for k, v in raw.items()}, config)
+    t, out, info["dt"], info["resampled"] = _resample({k: v[keep] for k, v in raw.items()}, config, raw["t"])
     win = 2 * int(round(config.sg_window / info["dt"] / 2)) + 1
     if win <= config.sg_order or win > len(t):
         raise ValueError(f"config.sg_window: expected between {config.sg_order + 1} samples and the log "
@@ -168,8 +244,9 @@ def prepare(raw: dict, config: LogConfig = LogConfig(), source: str = "arrays") 
                info=info)
 
 
-def _resample(raw, config):
-    """(t (G,), arrays on the grid, dt, resampled?) after checking the length and the time stamps."""
+def _resample(raw, config, stamps):
+    """(t (G,), arrays on the grid, dt, resampled?) after checking the length and the time stamps (stamps (T0,): all
+    recorded ones, stale rows included, for the gap check)."""
     t = raw["t"]
     if len(t) < config.min_samples:
         raise ValueError(f"log: too short to fit: {len(t)} samples after cleaning, expected at least "
@@ -179,13 +256,31 @@ def _resample(raw, config):
         i = int(bad[0]) + 1
         raise ValueError(f"t: expected strictly increasing time stamps, found t[{i}] = {t[i]!r} after "
                          f"t[{i - 1}] = {t[i - 1]!r} ({len(bad)} such rows)")
+    _check_gaps(t, stamps, config.max_gap)
     dt = float(np.median(np.diff(t))) if config.dt is None else float(config.dt)
     if not dt > 0:
         raise ValueError(f"config.dt: expected a period > 0 s, found {dt}")
-    grid = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1)
+    span = (t[-1] - t[0]) / dt + 1e-6          # slack: stamps like 3600.123 s (a robot clock) carry ~1e-13 s error
+    grid = t[0] + dt * np.arange(int(np.floor(span)) + 1)
     if len(grid) == len(t) and np.allclose(grid, t, rtol=0, atol=1e-6 * dt):
         return t, {k: v for k, v in raw.items() if k != "t"}, dt, False
     return grid, {k: _interp(grid, t, v) for k, v in raw.items() if k != "t"}, dt, True
+
+
+def _check_gaps(t, stamps, max_gap):
+    """ValueError if the recorded stamps (T0,) leave a gap longer than max_gap [s]; t (T,): the kept stamps."""
+    if not max_gap > 0:
+        raise ValueError(f"config.max_gap: expected a duration > 0 s, found {max_gap}")
+    step = float(np.median(np.diff(t)))
+    if step > max_gap:
+        raise ValueError(f"t: expected a sampling period below config.max_gap = {max_gap} s, found a median step of "
+                         f"{step:g} s (time stamps in ms read as s?)")
+    gaps = np.flatnonzero(np.diff(stamps) > max_gap)
+    if len(gaps):
+        i = int(gaps[0])
+        raise ValueError(f"t: expected no gap longer than config.max_gap = {max_gap} s, found {len(gaps)}, the first "
+                         f"of {stamps[i + 1] - stamps[i]:g} s from t = {stamps[i]:.10g} s to {stamps[i + 1]:.10g} s "
+                         f"(samples {i} and {i + 1}); cut the log at the gap, or raise max_gap to interpolate over it")
 
 
 def _check_raw(raw):

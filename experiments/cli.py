@@ -31,6 +31,8 @@ DEMOS = {
                        "experiments.cli:_detector_bench", ("seed", "json")),
     "vi-bench": ("VI alone on simulated windows: time, iterations, error, coverage", "experiments.cli:_vi_bench",
                  ("seed", "json")),
+    "reliability": ("randomised loads, removals and pushes on random poses: how many changes are compensated",
+                    "experiments.reliability:main", ("seed", "json", "episodes")),
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
                        "experiments.cli:_diagnose_bench", ("json",)),
 }
@@ -41,6 +43,7 @@ FLAGS = {
     "plot": (("--plot",), dict(metavar="FILE", default=None, help="save a figure (needs matplotlib)")),
     "view": (("--view",), dict(action="store_true", help="open MuJoCo's viewer when a display exists")),
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
+    "episodes": (("--episodes",), dict(type=int, default=100, help="episodes of each kind")),
 }
 
 

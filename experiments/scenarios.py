@@ -59,8 +59,9 @@ def print_estimates(log, label="RME"):
     for e in log["history"]:
         k = min(np.searchsorted(t, e.t), len(t) - 1)
         when = (f"applied at {e.applied:.3f} s" if e.accepted else
-                f"rejected: explains only {100 * e.explained:.0f} % of the change (not a load)")
-        what = {"detection": "detects a change", "at rest": "estimates again, arm at rest"}.get(
+                f"rejected: {e.reason} (not a load)")
+        what = {"detection": "detects a change", "at rest": "estimates again, arm at rest",
+                "monitor": "estimates again, arm at rest: the compensation no longer explained tau_ext"}.get(
             e.kind, "estimates again, the arm did not come to rest")
         print(f"  {e.t:6.3f} s  {label} {what}; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m  [truth m = {theta[k, 0]:.3f}, "

@@ -1,0 +1,124 @@
+"""Streaming RME in closed loop: the consistency monitor heals what the detector misses, removals right after an
+estimate, heavy loads on a slowly settling arm, push releases, absurd samples; against the simulated plant's truth."""
+import numpy as np
+import pytest
+
+from cpic import CPIC, Attractor
+from detector import Detector, DetectorSettings
+from dynamics import Q_READY, Robot
+from experiments.reliability import ReliabilityConfig, reliability
+from experiments.runner import PayloadChange, Push, run
+from nn_train import DataConfig, random_pose
+from rme import RME, RMESettings
+from sim import Plant, PlantConfig
+
+SYNC = RMESettings(asynchronous=False)          # estimates applied on their sample: runs repeat exactly
+
+
+def hold(seed, seconds, events, q0=Q_READY, settings=SYNC, preset="realistic"):
+    """CPIC holds q0 on a plant (seeded), RME in the loop: the Record and the estimator."""
+    rng = np.random.default_rng(seed)
+    plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
+    est = RME(plant.robot, settings=settings, rng=np.random.default_rng(seed + 1))
+    rec = run(plant, CPIC(plant.robot, Attractor(*plant.robot.ee_pose(q0))), seconds, est, events, q0=q0)
+    return rec, est
+
+
+def within(m_hat, m):
+    return abs(m_hat - m) <= max(0.1 * m, 0.05)
+
+
+def test_removal_right_after_the_estimate_at_rest_is_compensated():
+    load = PayloadChange(1.0, 1.0, (0.03, -0.02, 0.1))
+    _, est = hold(3, 3.5, [load])
+    t_rest = next(e.t for e in est.history if e.kind == "at rest")
+    rec, est = hold(3, t_rest + 3.0, [load, PayloadChange(t_rest + 0.3, 0.0)])
+    assert within(rec.theta_hat[rec.at(t_rest + 0.25), 0], 1.0)            # the load was compensated ...
+    assert within(rec.theta_hat[-1, 0], 0.0)                               # ... and its removal is too
+    assert np.linalg.norm(rec.p[-1] - rec.target[-1]) < 0.01
+
+
+def test_heavy_load_on_a_slowly_settling_arm_is_compensated():
+    """2.5 kg at a pose where the compliant arm settles for seconds: no settled window for the detector, so the
+    monitor must catch it once the arm is calm."""
+    q0 = random_pose(Robot.panda(), np.random.default_rng(28), DataConfig())
+    rec, est = hold(28, 6.0, [PayloadChange(1.5, 2.5, (0.07, -0.1, 0.01))], q0=q0)
+    assert within(rec.theta_hat[-1, 0], 2.5), [(e.kind, e.mean.round(3).tolist()) for e in est.history]
+    assert 1e3 * np.linalg.norm(rec.p[-1] - rec.target[-1]) < 10.0
+
+
+@pytest.mark.parametrize("force", [(0.0, 0.0, 25.0), (0.0, 0.0, 40.0)])
+def test_release_of_an_upward_push_is_not_applied(force):
+    """An upward push lifts the arm; its release drops tau_ext back to where it was before the push, which a detector
+    referred to the pushed state reads as a new load. RME must not compensate anything."""
+    rec, est = hold(5, 4.0, [Push(1.0, force, 1.0, body="link7", offset=(0.0, 0.0, 0.107))])
+    applied = [e for e in est.history if e.accepted and e.mean[0] > 0.05]
+    assert not applied, [(e.t, e.kind, e.mean.round(3).tolist()) for e in applied]
+    assert np.abs(rec.theta_hat[:, 0]).max() <= 0.05
+
+
+def test_a_change_the_detector_misses_is_healed_once_the_arm_rests():
+    blind = RMESettings(asynchronous=False, detector=DetectorSettings(activation_threshold=1e6))   # never fires
+    rec, est = hold(7, 4.0, [PayloadChange(1.0, 0.9, (0.05, -0.03, 0.13))], settings=blind)
+    healed = [e for e in est.history if e.kind == "monitor" and e.accepted]
+    assert healed and healed[0].t < 1.0 + 1.5                      # within about 1 s of the arm coming to rest
+    assert within(rec.theta_hat[-1, 0], 0.9)
+    off = RMESettings(asynchronous=False, monitor=False, detector=blind.detector)
+    rec_off, _ = hold(7, 4.0, [PayloadChange(1.0, 0.9, (0.05, -0.03, 0.13))], settings=off)
+    assert rec_off.theta_hat[-1, 0] == 0.0                           # without the monitor the load stays missed
+
+
+def test_a_wrong_compensation_is_corrected_at_rest():
+    """A phantom estimate of 1.5 kg forced in while nothing is attached is withdrawn by the monitor."""
+    rng = np.random.default_rng(99)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    est2 = RME(plant.robot, settings=SYNC, rng=np.random.default_rng(1))
+    ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)))
+    rec = run(plant, ctrl, 1.0, est2, [], q0=Q_READY)                 # learns the unloaded level at rest
+    est2.theta, est2._phi = np.array([1.5, 0.0, 0.0, 0.1]), np.array([1.5, 0.0, 0.0, 0.15])
+    rec = run(plant, ctrl, 3.0, est2, first=rec.last)
+    assert within(rec.theta_hat[-1, 0], 0.0), [(e.kind, e.mean.round(3).tolist()) for e in est2.history]
+
+
+def test_an_absurd_sample_is_dropped_and_detection_goes_on():
+    robot = Robot.panda()
+    est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0))
+    noise = np.random.default_rng(1)
+    theta = np.array([0.8, 0.02, 0.0, 0.1])
+    for k in range(3000):
+        tau = robot.payload_torque(Q_READY, theta) if k >= 1500 else np.zeros(7)
+        tau = tau + 0.01 * noise.normal(size=7)
+        if k in (700, 701):
+            tau = np.full(7, 1e200) if k == 700 else np.full(7, np.nan)
+        comp = est.update(Q_READY, np.zeros(7), tau)
+        assert np.all(np.isfinite(comp))
+    assert est.dropped == 2
+    assert within(est.theta[0], 0.8) and any(e.kind == "detection" for e in est.history)
+    with pytest.raises(ValueError, match="tau_ext"):
+        Detector().update(np.full(7, 1e200), force=np.zeros(3))
+
+
+def test_detector_shift_equals_a_detector_fed_the_shifted_samples():
+    rng = np.random.default_rng(4)
+    tau, F = rng.normal(size=(700, 7)), rng.normal(size=(700, 3))
+    d_tau, d_F = rng.normal(size=7), rng.normal(size=3)
+    a, b = Detector(), Detector()
+    for k in range(700):
+        a.update(tau[k], force=F[k])
+        b.update(tau[k] - d_tau, force=F[k] - d_F)
+    a.shift(d_tau, d_F)
+    new_tau, new_F = rng.normal(size=(50, 7)), rng.normal(size=(50, 3))
+    for k in range(50):
+        a.update(new_tau[k], force=new_F[k])
+        b.update(new_tau[k], force=new_F[k])
+        for key in ("rapid", "stabilisation", "force_change"):
+            np.testing.assert_allclose(a.status[key], b.status[key], rtol=1e-9, atol=1e-9)
+
+
+def test_small_reliability_run_is_safe_and_compensates_what_rests():
+    res = reliability(episodes=3, push_episodes=2, seed=1, cfg=ReliabilityConfig(), log=lambda *a: None)
+    s = res["summary"]
+    assert s["nan"] == 0 and s["torque_over_limit"] == 0 and s["joint_limit_violations"] == 0
+    for kind in ("attachments_compensated", "removals_compensated"):
+        assert s[kind]["compensated"] == s[kind]["count"], s
+    assert s["final_error_below_target"] == s["load_episodes"]
