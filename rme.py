@@ -48,7 +48,9 @@ class RMESettings:
                                    #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
     first_explained: float = 0.97  # the monitor's gate at the first rest, against no payload at all: real loads
                                    #   explain 0.97-1.0 there, the realistic sensor's bias alone about 0.5
-    pose_tolerance: float = 0.1    # rad: within this of the pose where a level was explained, that level still holds
+    pose_tolerance: float = 0.3    # rad on every joint: within this of the pose where a level was explained, that level
+                                   #   still holds (the realistic sensor's bias varies over radians; a 3 kg load
+                                   #   or a 60 N push moves the compliant arm by about 0.1-0.3 rad)
     max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
     vi: vi.VISettings = field(default_factory=vi.VISettings)
     detector: DetectorSettings = field(default_factory=DetectorSettings)
@@ -111,9 +113,8 @@ class RME:
         self._r = np.zeros((keep, n))                  # ring of residuals tau_ext - tau_mm(q, theta) (- correction)
         self._k = 0                                    # samples seen
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
-        self._level = None                             # residual level (n,) when the estimate last explained tau_ext
-        self._level_q = None                           # the pose (n,) where that level was seen
-        self._muted = None                             # a steady level the monitor found not to be a payload
+        self._levels = LevelMap(settings.pose_tolerance)   # residual levels where the estimate explained tau_ext
+        self._muted = LevelMap(settings.pose_tolerance)    # steady levels the monitor found not to be a payload
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta = np.zeros(4)                       # the estimate being compensated
         self._phi = np.zeros(4)                        # its phi = (m, m r), kept with it for the 1 kHz loop
@@ -215,11 +216,11 @@ class RME:
         return self._last
 
     def _apply(self, e, level, Y, J):
-        """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual, whose
-        expected level is `level` (when known)."""
-        self._muted = None
+        """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
+        (q, residual level) the new compensation should leave at pose q (its reference), or None."""
+        self._muted = LevelMap(self.settings.pose_tolerance)          # judged under the compensation before
         if level is not None:
-            self._set_level(level)
+            self._levels.put(*level)
         theta = _safe_theta(e.mean, self.theta, self.settings.max_mass)
         d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
         self.theta, self._phi = theta, vi.phi_of(theta)
@@ -237,33 +238,31 @@ class RME:
             TAU = TAU - self.correction.correction(Q, self._dq[order])
         return Q, TAU, self._r[order]
 
-    def _set_level(self, level):
-        self._level, self._level_q, self._muted = level, self._q[(self._k - 1) % len(self._q)].copy(), None
-
-    def _bias(self, R_ref, q_now):
+    def _bias(self, R_ref, q_ref):
         """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
-        samples R_ref, unless the estimate did not explain them (a push, a change it missed) while the arm is back
-        near the pose (within pose_tolerance) of a level it did explain: then that level."""
-        s = self.settings
-        local = R_ref.mean(axis=0)
-        if self._level is None or np.linalg.norm(local - self._level) <= s.monitor_threshold:
+        samples R_ref (taken at pose q_ref), unless the estimate did not explain them (a push, a change it missed)
+        while a level it did explain is known at that pose: then that level."""
+        thr = self.settings.monitor_threshold
+        local, trusted, muted = R_ref.mean(axis=0), self._levels.at(q_ref), self._muted.at(q_ref)
+        if trusted is None or np.linalg.norm(local - trusted) <= thr:
             return local
-        if self._muted is not None and np.linalg.norm(local - self._muted) <= s.monitor_threshold:
-            return local                     # a state already judged not to be a payload (a drifted bias, a push)
-        if np.abs(q_now - self._level_q).max() > s.pose_tolerance:
-            return local                     # another pose: the pose-dependent bias has moved on
-        return self._level
+        if muted is not None and np.linalg.norm(local - muted) <= thr:
+            return local                     # a state already judged not to be a payload (a drifted bias)
+        return trusted
 
     def _on_detection(self):
-        """Estimate the total payload from the newest window, referred to the torque before the change. A change
-        during a pending estimate at rest supersedes it."""
+        """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
+        change during a pending estimate at rest supersedes it."""
         s = self.settings
         Q, TAU, Rs = self._buffer()
-        bias = self._bias(Rs[:s.reference], Q[-1])
-        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection", level=bias)
-        self._refine = None
+        q_ref = Q[:s.reference].mean(axis=0)
+        bias = self._bias(Rs[:s.reference], q_ref)
+        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection", level=(q_ref, bias))
+        if e.accepted:                     # a rejected detection (the arm answering a compensation) keeps the last
+            self._refine = None            #   pending estimate at rest
         if e.accepted and s.refine:
-            self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
+            self._refine = dict(bias=bias, q=q_ref, before=self.theta.copy(),
+                                deadline=self._k + int(s.refine_within * s.rate))
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -271,41 +270,43 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest", level=r["bias"])
+        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest", level=(r["q"], r["bias"]))
 
     def _check_consistency(self):
-        """The monitor (see update): the residual's level over the last monitor_window samples, if steady. The first
-        level is estimated against no payload at all (RME assumes it starts unloaded) with the stricter gate
-        first_explained; later ones against the level last explained."""
+        """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
+        the level explained before at this pose. The very first level is estimated against no payload at all (RME
+        assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
+        taken as explained."""
         s = self.settings
         Q, TAU, Rs = self._buffer()
         level, recent = Rs[-s.monitor_window:].mean(axis=0), Rs[-s.monitor_window // 3:].mean(axis=0)
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
+        q = Q[-s.monitor_window:].mean(axis=0)
+        trusted, muted, first = self._levels.at(q), self._muted.at(q), len(self._levels) == 0
         near = lambda a, b: b is not None and np.linalg.norm(a - b) <= s.monitor_threshold
-        if near(level, self._level):
-            self._set_level(level)                                     # explained: follow the slow bias drift
-            return
-        if near(level, self._muted):
+        if near(level, muted):
             return                                                     # judged before: not a payload
-        first = self._level is None
-        reference = np.zeros(self.robot.n) if first else self._level
+        if not first and (trusted is None or near(level, trusted)):
+            self._levels.put(q, level)                                 # explained: follow the slow bias drift
+            return
+        reference = np.zeros(self.robot.n) if first else trusted
         if first:                                # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= s.first_explained
         else:                                    # the new estimate must make the level consistent again
-            gap = np.linalg.norm(level - self._level)
-            accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(e.mean)).mean(axis=0)) <= min(
-                s.monitor_threshold, 0.5 * gap)
+            gap = np.linalg.norm(level - trusted)
+            accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(_safe_theta(
+                e.mean, self.theta, s.max_mass))).mean(axis=0)) <= min(s.monitor_threshold, 0.5 * gap)
         e = self._change(Q[-s.window:], TAU[-s.window:] - reference, self.theta, "monitor", accept,
-                         level=None if first else reference)
+                         level=None if first else (q, trusted))
         if e.accepted and first:                                       # what the payload leaves is the bias
             Y = self.robot.payload_regressor(Q[-s.window:])
-            self._pending[2] = (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0)
+            self._pending[2] = (q, (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0))
         elif first:
-            self._set_level(level)                                     # no payload: the level is the bias
+            self._levels.put(q, level)                                 # no payload: the level is the bias
             self.history.pop()                                         # (establishing it is not an estimate)
         elif not e.accepted:
-            self._muted = level
+            self._muted.put(q, level)
         self._calm = 0
 
     def _change(self, Qw, Tw, theta_before, kind, accept=None, level=None) -> Estimate:
@@ -328,6 +329,38 @@ class RME:
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
             self._pending = [k + delay, e, level]
         return e
+
+
+class LevelMap:
+    """Residual levels (n,) by pose: the torque the arm's own sensors and model error leave at a pose q (n,) when
+    the compensation is right (a real Panda's bias is pose dependent). at(q): the level stored nearest to q within
+    `tolerance` rad on every joint, or None; put(q, level) replaces that one or adds it (at most `size` kept)."""
+
+    def __init__(self, tolerance: float, size: int = 64):
+        self.tolerance, self.size, self.q, self.level = tolerance, size, [], []
+
+    def __len__(self):
+        return len(self.q)
+
+    def _nearest(self, q):
+        if not self.q:
+            return None
+        d = np.abs(np.asarray(self.q) - q).max(axis=1)
+        i = int(np.argmin(d))
+        return i if d[i] <= self.tolerance else None
+
+    def at(self, q):
+        i = self._nearest(q)
+        return None if i is None else self.level[i]
+
+    def put(self, q, level):
+        i = self._nearest(q)
+        if i is not None:
+            del self.q[i], self.level[i]
+        self.q.append(np.array(q, dtype=float))
+        self.level.append(np.array(level, dtype=float))
+        if len(self.q) > self.size:
+            del self.q[0], self.level[0]
 
 
 def _safe_theta(new, old, max_mass):

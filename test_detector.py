@@ -20,7 +20,8 @@ def brute_force_status(history, s: DetectorSettings):
     tau_ref, F_ref = mean(tau, s.reference_window), mean(F, s.reference_window)
     sq = np.sum((tau - tau_ref) ** 2, axis=1)
     rapid = abs(mean(sq, s.end_window) - mean(sq, s.reference_window))
-    drift = [np.linalg.norm(mean(tau, w) - mean(tau, s.end_window)) for w in s.check_windows]
+    allowance = s.stabilisation_relative * np.linalg.norm(mean(tau, s.end_window) - tau_ref)
+    drift = [np.linalg.norm(mean(tau, w) - mean(tau, s.end_window)) - allowance for w in s.check_windows]
     return rapid, np.array(drift), mean(F, s.force_window) - F_ref
 
 

@@ -1,12 +1,14 @@
-"""Tests of qp.py: the dual active-set QP solver against closed-form optima, an exhaustive active-set reference and
-scipy's linprog (feasibility verdicts), warm starts, degenerate problems and input checks."""
+"""Tests of qp.py: the dual active-set QP solver against closed-form optima, an exhaustive active-set reference,
+quadprog (the same method in Fortran, when installed) and scipy's linprog (feasibility verdicts), warm starts,
+degenerate and overflowing problems and input checks."""
 import itertools
 
 import numpy as np
 import pytest
 
 import cpic
-from qp import solve_qp
+from experiments.qp_bench import quadprog_solve, random_problem
+from qp import dual_active_set, solve_qp
 
 
 # --- QP solver -----------------------------------------------------------------------------------------------
@@ -206,9 +208,82 @@ def test_qp_without_constraints_returns_the_unconstrained_minimiser():
         assert np.allclose(x, -np.linalg.solve(H, g), atol=1e-10) and info.residual <= 1e-10
 
 
-def test_cpic_reexports_the_solver_under_its_issue_name():
+def test_cpic_reexports_the_solver_under_its_public_name():
     """An outside check calls cpic.solve_qp(H, g, A, b, active=None) -> (x, info)."""
     rng = np.random.default_rng(14)
     H, g, A, b, x_star, _ = constructed_qp(rng)
     x, info = cpic.solve_qp(H, g, A, b, active=None)
     assert cpic.solve_qp is solve_qp and info.status == "optimal" and np.allclose(x, x_star, atol=1e-8)
+
+
+def test_qp_matches_quadprog_in_x_and_active_set_on_random_problems():
+    """300 random 7-variable problems with 4-28 constraints (the benchmark's): x and the active set agree with
+    quadprog's; active = multiplier > 1e-9 on both sides (weakly active rows may differ between the methods)."""
+    pytest.importorskip("quadprog")
+    rng = np.random.default_rng(17)
+    sizes = []
+    for _ in range(300):
+        H, g, A, b = random_problem(rng)
+        x, info = solve_qp(H, g, A, b)
+        x_ref, active_ref = quadprog_solve(H, g, A, b)
+        assert info.status == "optimal" and np.abs(x - x_ref).max() <= 1e-9 * max(1.0, np.abs(x_ref).max())
+        lam_ref = np.linalg.lstsq(A[active_ref].T, H @ x_ref + g, rcond=None)[0]   # H x + g = A_W^T lambda
+        strong_ref = set(active_ref[lam_ref > 1e-9].tolist())
+        assert set(np.flatnonzero(info.multipliers > 1e-9).tolist()) == strong_ref
+        sizes.append(len(strong_ref))
+    assert np.mean(np.array(sizes) >= 4) > 0.5                         # most optima have several active rows
+
+
+def test_dual_active_set_takes_any_factor_of_the_inverse_hessian():
+    """The loop's entry point: B = L^-1 (H = L L^T) and B = chol(H^-1)^T (what CPIC passes) give solve_qp's answer,
+    cold and warm started."""
+    rng = np.random.default_rng(18)
+    for _ in range(50):
+        H, g, A, b, x_star, _ = constructed_qp(rng)
+        x_ref, info = solve_qp(H, g, A, b)
+        for B in (np.linalg.inv(np.linalg.cholesky(H)), np.linalg.cholesky(np.linalg.inv(H)).T):
+            for warm in ([], info.active.tolist()):
+                x, status, it, active, mult = dual_active_set(B, g, A, b, warm, 100)
+                assert status == "optimal" and np.abs(x - x_ref).max() <= 1e-9 * max(1.0, np.abs(x_ref).max())
+                assert sorted(active) == sorted(info.active.tolist()) and np.allclose(mult, info.multipliers)
+
+
+def test_dual_active_set_reports_broken_numbers_without_raising():
+    """Unchecked inputs with NaN or inf (the 1 kHz loop's, e.g. from an absurd velocity): a status other than
+    "optimal", never an exception."""
+    rng = np.random.default_rng(19)
+    for i in range(60):
+        H, g, A, b, _, _ = constructed_qp(rng)
+        B = np.linalg.inv(np.linalg.cholesky(H))
+        args = [B, g, A, b]
+        which = i % 4
+        args[which] = args[which].copy()
+        args[which].flat[int(rng.integers(args[which].size))] = (np.nan, np.inf, -np.inf)[i % 3]
+        with np.errstate(all="ignore"):
+            x, status, it, active, mult = dual_active_set(*args, active=list(range(i % 3)), max_iterations=100)
+        if which != 3 or i % 3 == 0:                                  # b_i = -inf is a harmless row; +inf is not
+            assert status != "optimal", (which, i % 3)
+
+
+def test_qp_never_reports_optimal_for_an_answer_that_violates_a_constraint():
+    """Entries of +-1e300 in A, g or b overflow the arithmetic: every "optimal" answer must be finite and satisfy
+    A x >= b up to rounding (1e-9 (1 + |b_i| + |a_i| |x|), evaluated without overflow). The first two optima,
+    x = (1, 1e300), have multipliers near 1e600, beyond double precision: they must not be reported optimal."""
+    H, big = np.eye(2), 1e300
+    cases = [(np.array([[1.0, 0.0], [-big, 1.0]]), np.array([1.0, 0.0]), np.array([-big, 0.0])),
+             (np.array([[1.0, 0.0], [-big, 1.0]]), np.array([1.0, 0.0]), np.array([big, big])),
+             (np.array([[-big, 1.0]]), np.array([1.0]), np.array([-big, 0.0])),
+             (np.array([[1.0, 1.0]]), np.array([1.0]), np.array([big, big])),
+             (np.array([[1.0, 0.0], [0.0, 1.0]]), np.array([1.0, big]), np.zeros(2)),
+             (np.array([[1.0, 0.0], [-big, 1.0]]), np.array([1.0, 0.0]), np.zeros(2))]
+    verdicts = []
+    for A, b, g in cases:
+        with np.errstate(all="ignore"):
+            x, info = solve_qp(H, g, A, b)
+            scale = 1.0 + np.abs(b) + np.abs(A) @ np.abs(x)
+            s = A @ x - b
+        if info.status == "optimal":
+            assert np.isfinite(x).all() and np.isfinite(scale).all() and np.isfinite(s).all()
+            assert (s >= -1e-9 * scale).all(), (A, b, g, x)
+        verdicts.append(info.status)
+    assert "optimal" not in verdicts[:2] and "optimal" in verdicts    # the check is not vacuous

@@ -165,6 +165,7 @@ def reliability(episodes: int = 100, push_episodes: int = 100, seed: int = 0, cf
 
 def main(args):
     res = reliability(args.episodes, args.episodes, args.seed, log=(lambda *a: None) if args.json else print)
+    res["limit_cycle"] = limit_cycle_trials(range(args.seed, args.seed + 20))
     if args.json:
         print(json.dumps(res, default=float))
         return res
@@ -178,12 +179,42 @@ def main(args):
     print(f"  removals detected           {pct(s['removals_detected'], 'detected')}")
     print(f"  removals compensated        {pct(s['removals_compensated'], 'compensated')}")
     print(f"  compensated with a push within 0.5 s   {s['compensated_with_a_push_nearby']}/{s['with_a_push_nearby']}")
-    print(f"  load change -> compensation (attachments)  median {s['latency_ms_median']:.0f} ms, p90 "
-          f"{s['latency_ms_p90']:.0f} ms; without a push within 0.5 s: median {s['latency_ms_median_no_push']:.0f} ms")
+    ms = lambda v: "-" if v is None else f"{v:.0f} ms"
+    print(f"  load change -> compensation (attachments)  median {ms(s['latency_ms_median'])}, p90 "
+          f"{ms(s['latency_ms_p90'])}; without a push within 0.5 s: median {ms(s['latency_ms_median_no_push'])}")
     print(f"  final ee error: median {s['final_error_mm_median']:.1f} mm; below 10 mm in "
           f"{s['final_error_below_target']}/{s['load_episodes']} episodes")
     print(f"  pushes only: detected in {s['push_episodes_detected']}/{s['push_episodes']} episodes, applied in "
           f"{s['push_episodes_applied']}/{s['push_episodes']}")
     print(f"  safety: NaN {s['nan']}, torque over the limits {s['torque_over_limit']}, joint limits "
           f"{s['joint_limit_violations']}")
+    lc = res["limit_cycle"]
+    late = sum(t is not None and t > 1.0 for t in lc["seconds_to_compensation"])
+    print(f"  limit cycle with 2 kg (sensor seeds {args.seed}..{args.seed + 19}): compensated {lc['compensated']}/"
+          f"{lc['seeds']}, cycling again {lc['cycling_again']}/{lc['seeds']} ({late} only after the arm stalled and "
+          f"rested); load-free cycling for {lc['load_free_seconds']:.0f} s: {lc['load_free_applied']} estimates applied")
     return res
+
+
+def limit_cycle_trials(seeds=range(20), load=(2.0, 0.04, 0.0, 0.10), t_attach=4.0, seconds=12.0,
+                       free_seconds=20.0) -> dict:
+    """The limit cycle of `python sim.py limit-cycle` on the realistic preset for each sensor seed: is the load
+    compensated (mass within 10 %) and does the arm cycle again at the end (>= 0.1 turns/s over the last 2 s)? And
+    load-free cycling for free_seconds: how many estimates are applied (none should be)."""
+    from experiments.scenarios import Args, run as scenario
+    from experiments.scenarios import limit_cycle_policy
+    cycle = limit_cycle_policy()
+    ok, recovered, detected = [], [], []
+    for seed in seeds:
+        rec = scenario(Args(seed=seed), seconds, [(t_attach, np.array(load), None)], policies=[(0.0, cycle)])
+        ok.append(bool(abs(rec.theta_hat[-1, 0] - load[0]) <= 0.1 * load[0]))
+        late = rec.t >= seconds - 2.0
+        u = rec.p[late] - cycle.center
+        phase = np.unwrap(np.arctan2(u[:, 2], u[:, 1]))
+        recovered.append(bool((phase[-1] - phase[0]) / (2 * np.pi * 2.0) >= 0.1))
+        hits = [e.t for e in rec.history if e.accepted and e.t > t_attach]
+        detected.append(hits[0] - t_attach if hits else None)
+    free = scenario(Args(seed=0), free_seconds, [], policies=[(0.0, cycle)])
+    return {"seeds": len(ok), "compensated": sum(ok), "cycling_again": sum(recovered),
+            "seconds_to_compensation": detected,
+            "load_free_applied": sum(e.accepted for e in free.history), "load_free_seconds": free_seconds}

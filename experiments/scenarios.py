@@ -3,6 +3,8 @@ human pushes, limit cycle, pick-and-place; each run with and without RME. Run th
 `python sim.py`, `python sim.py basket`, `python sim.py limit-cycle`, `python sim.py pick-place`."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from cpic import CPIC, Attractor, LimitCycle
@@ -160,12 +162,26 @@ def basket(args):
     return runs
 
 
+@dataclass(frozen=True)
+class Args:
+    """The demos' options, for calling a scenario from Python."""
+    seed: int = 0
+    preset: str = "realistic"
+    view: bool = False
+    plot: str | None = None
+
+
+def limit_cycle_policy() -> LimitCycle:
+    """The y-z limit cycle of the demo: radius 0.1 m, period 6 s, centred 0.1 m in front of the ready pose's ee."""
+    p, R = Robot.panda().ee_pose(Q_READY)
+    return LimitCycle(p + np.array([0.1, 0.0, 0.0]), R, radius=0.1, period=6.0)
+
+
 def limit_cycle(args):
     """Tracking a stable limit cycle in the y-z plane (Sec. 5.3, Fig. 6); a payload is added at 4 s. Without RME
     the arm is pulled below the cycle; with RME it returns to it."""
-    robot_pose = Robot.panda().ee_pose(Q_READY)
-    center = robot_pose[0] + np.array([0.1, 0.0, 0.0])
-    cycle = LimitCycle(center, robot_pose[1], radius=0.1, period=6.0)
+    cycle = limit_cycle_policy()
+    center = cycle.center
     theta, t_attach, seconds = np.array([2.0, 0.04, 0.0, 0.10]), 4.0, 12.0
     variants = [("without", False, None), ("with", True, None)]
     if args.preset == "realistic":
