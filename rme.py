@@ -291,6 +291,12 @@ class RME:
             self._levels.put(q, level)                                 # explained: follow the slow bias drift
             return
         reference = np.zeros(self.robot.n) if first else trusted
+        if not self._payload_like(level - reference, Q[-1], s.first_explained if first else s.min_explained):
+            if first:
+                self._levels.put(q, level)                             # no payload: the level is the bias
+            else:
+                self._muted.put(q, level)                              # e.g. a person holding the arm aside
+            return
         if first:                                # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= s.first_explained
         else:                                    # the new estimate must make the level consistent again
@@ -308,6 +314,14 @@ class RME:
         elif not e.accepted:
             self._muted.put(q, level)
         self._calm = 0
+
+    def _payload_like(self, d, q, gate):
+        """Whether a torque change d (n,) at pose q looks like a payload change: least squares d ~ Y(q) dphi explains
+        at least `gate` of it and leaves a total mass >= 0 (a cheap test before any estimate)."""
+        Y = self.robot.payload_regressor(q)
+        dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
+        explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
+        return explained >= gate and self._phi[0] + dphi[0] >= -0.05
 
     def _change(self, Qw, Tw, theta_before, kind, accept=None, level=None) -> Estimate:
         """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted

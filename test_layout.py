@@ -15,7 +15,7 @@ LAYERS = [
     {"nn_numpy", "vi", "detector", "cpic", "sim"},                   # the method's pieces and the plant
     {"nn_train", "rme"},                                             # the pipeline and the trainer
     {"diagnosis"},                                                   # the diagnosis tool
-    {"experiments"},                                                 # demos, benchmarks, training data
+    {"experiments", "franka"},                                       # demos, benchmarks, the robot bridge
 ]
 
 
