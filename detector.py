@@ -196,3 +196,35 @@ class Detector:
         if fired:
             self.reference_torque = tau_ref.copy()
         return fired
+
+
+class LevelMap:
+    """Residual levels (n,) by pose: the torque the arm's own sensors and model error leave at a pose q (n,) when
+    the compensation is right (a real Panda's bias is pose dependent). at(q): the level stored nearest to q within
+    `tolerance` rad on every joint, or None; put(q, level) replaces that one or adds it (at most `size` kept)."""
+
+    def __init__(self, tolerance: float, size: int = 64):
+        self.tolerance, self.size, self.q, self.level = tolerance, size, [], []
+
+    def __len__(self):
+        return len(self.q)
+
+    def _nearest(self, q):
+        if not self.q:
+            return None
+        d = np.abs(np.asarray(self.q) - q).max(axis=1)
+        i = int(np.argmin(d))
+        return i if d[i] <= self.tolerance else None
+
+    def at(self, q):
+        i = self._nearest(q)
+        return None if i is None else self.level[i]
+
+    def put(self, q, level):
+        i = self._nearest(q)
+        if i is not None:
+            del self.q[i], self.level[i]
+        self.q.append(np.array(q, dtype=float))
+        self.level.append(np.array(level, dtype=float))
+        if len(self.q) > self.size:
+            del self.q[0], self.level[0]

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import vi
-from detector import Detector, DetectorSettings, pseudo_force
+from detector import Detector, DetectorSettings, LevelMap, pseudo_force
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 
@@ -115,6 +115,7 @@ class RME:
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
         self._levels = LevelMap(settings.pose_tolerance)   # residual levels where the estimate explained tau_ext
         self._muted = LevelMap(settings.pose_tolerance)    # steady levels the monitor found not to be a payload
+        self._rejected = None                          # (q, level) before the last detection that was no payload
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta = np.zeros(4)                       # the estimate being compensated
         self._phi = np.zeros(4)                        # its phi = (m, m r), kept with it for the 1 kHz loop
@@ -219,6 +220,7 @@ class RME:
         """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
         (q, residual level) the new compensation should leave at pose q (its reference), or None."""
         self._muted = LevelMap(self.settings.pose_tolerance)          # judged under the compensation before
+        self._rejected = None
         if level is not None:
             self._levels.put(*level)
         theta = _safe_theta(e.mean, self.theta, self.settings.max_mass)
@@ -238,6 +240,18 @@ class RME:
             TAU = TAU - self.correction.correction(Q, self._dq[order])
         return Q, TAU, self._r[order]
 
+    def _undone(self, q, level) -> bool:
+        """Whether the residual `level` at pose q is back within monitor_threshold of the level before the last
+        rejected detection, at that pose: the end of whatever caused it (a person releasing the arm)."""
+        if self._rejected is None:
+            return False
+        q0, before = self._rejected
+        back = np.abs(q - q0).max() <= self.settings.pose_tolerance and \
+            np.linalg.norm(level - before) <= self.settings.monitor_threshold
+        if back:
+            self._rejected = None
+        return back
+
     def _bias(self, R_ref, q_ref):
         """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
         samples R_ref (taken at pose q_ref), unless the estimate did not explain them (a push, a change it missed)
@@ -256,13 +270,15 @@ class RME:
         s = self.settings
         Q, TAU, Rs = self._buffer()
         q_ref = Q[:s.reference].mean(axis=0)
+        if self._undone(Q[-1], Rs[-s.window:].mean(axis=0)):
+            return                         # back to the level before a change that was no payload: its release
         bias = self._bias(Rs[:s.reference], q_ref)
-        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection", level=(q_ref, bias))
+        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection")   # levels: only when calm
+        self._rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
         if e.accepted:                     # a rejected detection (the arm answering a compensation) keeps the last
             self._refine = None            #   pending estimate at rest
         if e.accepted and s.refine:
-            self._refine = dict(bias=bias, q=q_ref, before=self.theta.copy(),
-                                deadline=self._k + int(s.refine_within * s.rate))
+            self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -270,7 +286,7 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest", level=(r["q"], r["bias"]))
+        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest")
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -343,38 +359,6 @@ class RME:
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
             self._pending = [k + delay, e, level]
         return e
-
-
-class LevelMap:
-    """Residual levels (n,) by pose: the torque the arm's own sensors and model error leave at a pose q (n,) when
-    the compensation is right (a real Panda's bias is pose dependent). at(q): the level stored nearest to q within
-    `tolerance` rad on every joint, or None; put(q, level) replaces that one or adds it (at most `size` kept)."""
-
-    def __init__(self, tolerance: float, size: int = 64):
-        self.tolerance, self.size, self.q, self.level = tolerance, size, [], []
-
-    def __len__(self):
-        return len(self.q)
-
-    def _nearest(self, q):
-        if not self.q:
-            return None
-        d = np.abs(np.asarray(self.q) - q).max(axis=1)
-        i = int(np.argmin(d))
-        return i if d[i] <= self.tolerance else None
-
-    def at(self, q):
-        i = self._nearest(q)
-        return None if i is None else self.level[i]
-
-    def put(self, q, level):
-        i = self._nearest(q)
-        if i is not None:
-            del self.q[i], self.level[i]
-        self.q.append(np.array(q, dtype=float))
-        self.level.append(np.array(level, dtype=float))
-        if len(self.q) > self.size:
-            del self.q[0], self.level[0]
 
 
 def _safe_theta(new, old, max_mass):

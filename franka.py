@@ -1,0 +1,392 @@
+"""Real-robot bridge: RME (Sec. 4) feeding the CPIC torque controller (Sec. 5, Eq. 8, Eq. 5's compensation) in one
+1 kHz loop on a Franka Panda (pylibfranka or panda-python) or on the project's own sim.Plant (--sim). tau_ext in the
+paper's sign (Eq. 1) is minus libfranka's tau_ext_hat_filtered; the command sent excludes gravity (libfranka adds G)."""
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from cpic import CPIC, Attractor, CPICConfig, LimitCycle
+from dynamics import Robot
+from rme import RME
+
+LIBS = ("pylibfranka", "panda-py")
+TASKS = ("hold", "limit-cycle")
+Q_START = (0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4)   # Franka's ready pose (panda_facts.md)
+
+
+@dataclass
+class State:
+    """One robot state as libfranka reports it: q, dq [rad, rad/s], tau_J and tau_ext_hat_filtered [Nm] (7,) in
+    libfranka's sign (tau_ext_hat_filtered = tau_J - model, the load configured in Desk included in the model);
+    duration_s: time since the previous state [s] (1 ms per cycle; more means cycles were missed)."""
+    q: np.ndarray
+    dq: np.ndarray
+    tau_J: np.ndarray
+    tau_ext_hat_filtered: np.ndarray
+    duration_s: float
+
+
+def paper_tau_ext(tau_ext_hat_filtered) -> np.ndarray:
+    """tau_ext (7,) in the paper's sign (Eq. 1, model - tau_J) from libfranka's tau_ext_hat_filtered (tau_J - model)."""
+    return -np.asarray(tau_ext_hat_filtered, dtype=float)
+
+
+# --- safety ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SafetyConfig:
+    max_step: float = 1.0          # Nm per 1 ms cycle: Franka's dtau_max = 1000 Nm/s (panda_facts.md); libfranka's
+                                   #   own rate limiter does not act on the read/write path, so this one does
+
+
+class Safety:
+    """The last stage before the robot. command(tau, G) takes the controller's full torque tau (n,) (gravity
+    included) and the gravity G (n,) at the measured q and returns what is sent, cmd = tau - G (libfranka adds G):
+    1. tau or G not finite -> the last safe command is held (zero before the first one: the robot's own gravity
+       compensation alone), counted in `held`;
+    2. |cmd - last| <= max_step per joint (rate limit);
+    3. |cmd + G| <= tau_max per joint (torque limit; it wins over the rate limit when both cannot hold)."""
+
+    def __init__(self, tau_max, config: SafetyConfig = SafetyConfig()):
+        self.tau_max = np.asarray(tau_max, dtype=float)
+        if self.tau_max.ndim != 1 or not np.all(np.isfinite(self.tau_max)) or np.any(self.tau_max <= 0):
+            raise ValueError(f"tau_max: expected finite limits > 0 Nm (n,), found {tau_max!r}")
+        if not (np.isfinite(config.max_step) and config.max_step > 0):
+            raise ValueError(f"config.max_step: expected a torque step > 0 Nm, found {config.max_step!r}")
+        self.config, self.last, self.held = config, np.zeros(self.tau_max.size), 0
+
+    def command(self, tau, G) -> np.ndarray:
+        tau, G = np.asarray(tau, dtype=float), np.asarray(G, dtype=float)
+        n = self.tau_max.size
+        if tau.shape != (n,) or G.shape != (n,):
+            raise ValueError(f"tau, G: expected shapes ({n},), found {tau.shape}, {G.shape}")
+        if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(G))):
+            self.held += 1
+            return self.last.copy()
+        r = self.config.max_step
+        cmd = np.clip(tau - G, self.last - r, self.last + r)
+        cmd = np.clip(cmd, -self.tau_max - G, self.tau_max - G)
+        self.last = cmd
+        return cmd.copy()
+
+    def ramp_down(self) -> np.ndarray:
+        """The next command on the way to zero at the rate limit (gravity-free: the robot keeps holding G)."""
+        r = self.config.max_step
+        self.last = np.clip(0.0 - self.last, -r, r) + self.last
+        return self.last.copy()
+
+
+# --- backends: read() -> State, write(cmd) with cmd excluding gravity, stop() --------------------------------------
+class SimBackend:
+    """The project's MuJoCo plant (sim.Plant, realistic preset) behind libfranka's interface: it reports
+    tau_ext_hat_filtered = -tau_ext (the plant's tau_ext is in the paper's sign) and adds the nominal model's gravity
+    to each command, as the robot does. payload: (t [s], m [kg], r (3,) [m]) changes scheduled on the plant."""
+
+    def __init__(self, rng: np.random.Generator, q0=Q_START, payload=(), preset="realistic"):
+        from sim import Plant, PlantConfig
+        self.plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
+        for t, m, r in payload:
+            self.plant.schedule_payload(t, m, r)
+        self._s = self.plant.reset(q0)
+        self.initial = self.read()                     # the state before control starts
+
+    def read(self) -> State:
+        s = self._s
+        return State(s.q.copy(), s.dq.copy(), s.tau_J.copy(), -s.tau_ext, self.plant.dt)
+
+    def write(self, cmd):
+        self._s = self.plant.step(np.asarray(cmd, dtype=float) + self.plant.robot.gravity(self._s.q))
+
+    def stop(self):
+        pass
+
+
+def _need(module, lib):
+    try:
+        return __import__(module)
+    except ImportError as err:
+        raise RuntimeError(f"--lib {lib}: the package is not installed ({err}); `pip install -r "
+                           f"requirements-robot.txt` (pylibfranka) or `pip install panda-python` (panda-py)") from None
+
+
+def _state_of(s, duration_s) -> State:
+    return State(np.array(s.q, float), np.array(s.dq, float), np.array(s.tau_J, float),
+                 np.array(s.tau_ext_hat_filtered, float), float(duration_s))
+
+
+class PylibfrankaBackend:
+    """pylibfranka: Robot(ip, RealtimeConfig), start_torque_control() -> readOnce() / writeOnce(Torques)."""
+
+    def __init__(self, ip: str, realtime: bool = True, control: bool = True):
+        plf = _need("pylibfranka", "pylibfranka")
+        self._plf, self._ctrl = plf, None
+        rt = plf.RealtimeConfig.kEnforce if realtime else plf.RealtimeConfig.kIgnore
+        try:
+            self.robot = plf.Robot(ip, rt)
+            self.initial = _state_of(self.robot.read_once(), 1e-3)     # the state before control starts
+            if control:
+                self._ctrl = self.robot.start_torque_control()
+        except Exception as err:
+            raise RuntimeError(f"--robot-ip {ip}: no robot answered through pylibfranka "
+                               f"({type(err).__name__}: {err})") from None
+
+    def read(self) -> State:
+        if self._ctrl is None:
+            return _state_of(self.robot.read_once(), 1e-3)
+        s, d = self._ctrl.readOnce()
+        return _state_of(s, d.to_sec())
+
+    def write(self, cmd):
+        if self._ctrl is not None:
+            self._ctrl.writeOnce(self._plf.Torques([float(x) for x in cmd]))
+
+    def stop(self):
+        if self._ctrl is not None:
+            t = self._plf.Torques([0.0] * 7)
+            t.motion_finished = True
+            try:
+                self._ctrl.writeOnce(t)
+            finally:
+                self._ctrl = None
+                self.robot.stop()
+
+
+class PandaPyBackend:
+    """panda-python: libfranka.Robot.control(callback) owns the 1 kHz loop, so it runs in a thread and hands each
+    state to read() and takes the command from write() (a cycle without a command within 0.9 ms resends the last).
+    control=False (dry run) only reads states (Panda.get_state)."""
+
+    def __init__(self, ip: str, control: bool = True, timeout: float = 0.9e-3):
+        panda_py = _need("panda_py", "panda-py")
+        from panda_py import libfranka
+        try:
+            self.panda = panda_py.Panda(ip)
+            self.robot = self.panda.get_robot()
+            self.initial = _state_of(self.panda.get_state(), 1e-3)     # the state before control starts
+        except Exception as err:
+            raise RuntimeError(f"--robot-ip {ip}: no robot answered through panda-python "
+                               f"({type(err).__name__}: {err})") from None
+        self._lf, self._timeout, self._control = libfranka, timeout, control
+        self._states, self._cmds = queue.Queue(maxsize=1), queue.Queue(maxsize=1)
+        self._last, self._done, self._error = [0.0] * 7, threading.Event(), None
+        if control:
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
+
+    def _run(self):
+        def callback(state, duration):
+            if not self._states.full():
+                self._states.put_nowait(_state_of(state, duration.to_sec()))
+            try:
+                self._last = self._cmds.get(timeout=self._timeout)
+            except queue.Empty:
+                pass
+            t = self._lf.Torques(self._last)
+            t.motion_finished = self._done.is_set()
+            return t
+        try:
+            self.robot.control(callback)
+        except Exception as err:                       # reported by the next read()
+            self._error = err
+        self._done.set()
+
+    def read(self) -> State:
+        if not self._control:
+            return _state_of(self.panda.get_state(), 1e-3)
+        while True:
+            if self._error is not None or (self._done.is_set() and self._states.empty()):
+                raise RuntimeError(f"panda-python control ended: {self._error}")
+            try:
+                return self._states.get(timeout=0.1)
+            except queue.Empty:
+                continue
+
+    def write(self, cmd):
+        if self._control:
+            try:
+                self._cmds.get_nowait()                # a command the callback never took: replaced
+            except queue.Empty:
+                pass
+            self._cmds.put_nowait([float(x) for x in cmd])
+
+    def stop(self):
+        self._done.set()
+        if self._control:
+            self._thread.join(timeout=1.0)
+
+
+# --- the loop, written once for every backend ------------------------------------------------------------------
+def make_controller(robot: Robot, q0, task: str = "hold", stiffness_scale: float = 1.0) -> CPIC:
+    """CPIC holding the ee pose at q0 (hold) or circling 5 cm around it (limit-cycle, Sec. 5.3), with the DS gains
+    and the posture spring scaled by stiffness_scale (1: the project's defaults, cpic.py)."""
+    if task not in TASKS:
+        raise ValueError(f"task: expected one of {TASKS}, found {task!r}")
+    if not (np.isfinite(stiffness_scale) and 0 < stiffness_scale <= 1):
+        raise ValueError(f"stiffness_scale: expected a scale in (0, 1], found {stiffness_scale!r}")
+    p0, R0 = robot.ee_pose(np.asarray(q0, dtype=float))
+    S = float(stiffness_scale)
+    if task == "hold":
+        policy = Attractor(p0, R0, gain_pos=3.0 * S, gain_rot=8.0 * S)
+    else:                                              # the start pose is the top of the circle
+        policy = LimitCycle(p0 - np.array([0.0, 0.0, 0.05]), R0, radius=0.05, gain_pos=3.0 * S, gain_rot=8.0 * S)
+    return CPIC(robot, policy, CPICConfig(null_stiffness=CPICConfig.null_stiffness * S))
+
+
+def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float = 5.0, dry_run: bool = False,
+             print_every: float = 0.5, out=None) -> tuple[dict, dict]:
+    """Each cycle: state = backend.read(); tau_ext = -tau_ext_hat_filtered (paper sign); comp = estimator.update;
+    tau, _ = controller.step(q, dq, comp, tau_ext); cmd = safety.command(tau, G(q)); backend.write(cmd). A dry run
+    writes zeros (the robot backends then command nothing) and prints what it would command every print_every s.
+    Ends after `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate limit and
+    backend.stop(); an exception is raised again after that. Returns (summary, log arrays)."""
+    if not (np.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"seconds: expected a finite duration > 0 s, found {seconds!r}")
+    n, steps = robot.n, int(round(seconds * 1000))
+    safety, limit = Safety(robot.torque_limits()), robot.torque_limits()
+    rec = {k: np.full((steps, n), np.nan) for k in ("q", "dq", "tau_J", "tau_ext", "tau", "tau_cmd")}
+    rec["t"], rec["theta_hat"], rec["callback_s"] = np.full(steps, np.nan), np.full((steps, 4), np.nan), np.zeros(steps)
+    k, t, missed, stopped, last_print = 0, 0.0, 0, "end", -np.inf
+    try:
+        for k in range(steps):
+            s = backend.read()
+            t0 = time.perf_counter()
+            t += s.duration_s if k else 0.0
+            missed += max(int(round(s.duration_s * 1000)) - 1, 0) if k else 0
+            tau_ext = paper_tau_ext(s.tau_ext_hat_filtered)
+            comp = estimator.update(s.q, s.dq, tau_ext) if estimator is not None else None
+            tau, _ = controller.step(s.q, s.dq, comp, tau_ext)
+            G = robot.gravity(s.q)
+            cmd = safety.command(tau, G)
+            rec["callback_s"][k] = time.perf_counter() - t0
+            for key, v in (("q", s.q), ("dq", s.dq), ("tau_J", s.tau_J), ("tau_ext", tau_ext), ("tau", tau),
+                           ("tau_cmd", cmd)):
+                rec[key][k] = v
+            rec["t"][k] = t
+            rec["theta_hat"][k] = getattr(estimator, "theta", np.zeros(4))
+            if dry_run:
+                if t - last_print >= print_every:
+                    print(f"t {t:7.3f} s  would command (gravity-free) {np.array2string(cmd, precision=2)} Nm",
+                          file=out or sys.stdout)
+                    last_print = t
+                backend.write(np.zeros(n))
+            else:
+                backend.write(cmd)
+        k = steps
+    except KeyboardInterrupt:
+        stopped = "interrupted (Ctrl-C)"
+    except BaseException as err:
+        stopped = f"error: {type(err).__name__}: {err}"
+        _stop(backend, safety, dry_run)
+        raise
+    _stop(backend, safety, dry_run)
+    log = {key: v[:k] for key, v in rec.items()}
+    return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds), log
+
+
+def _stop(backend, safety: Safety, dry_run: bool, max_cycles: int = 100):
+    """Ramp the command to zero at the rate limit (87 Nm takes 87 cycles), then stop the backend."""
+    try:
+        for _ in range(max_cycles if not dry_run else 0):
+            if not np.any(safety.last):
+                break
+            backend.read()
+            backend.write(safety.ramp_down())
+    finally:
+        backend.stop()
+
+
+def summarize(log, estimator, robot, limit, missed, held, stopped, seconds) -> dict:
+    """What --json prints: run length, estimates (time, mass, CoM), torque and rate peaks, timing."""
+    cmd, q = log["tau_cmd"], log["q"]
+    G = robot.gravity(q) if len(q) else np.zeros((0, robot.n))
+    sent = cmd + G                                     # the torque the drives deliver (command + robot's gravity)
+    dtau = np.abs(np.diff(np.vstack([np.zeros((1, robot.n)), cmd]), axis=0))
+    cb = log["callback_s"] * 1e3
+    peak = lambda a: np.abs(a).max(axis=0).round(4).tolist() if len(a) else [0.0] * robot.n
+    return {"seconds": float(log["t"][-1]) if len(log["t"]) else 0.0, "requested_seconds": seconds,
+            "cycles": int(len(log["t"])), "stopped": stopped, "missed_cycles": int(missed), "nan_held": int(held),
+            "estimates": [{"t": round(float(e.t), 4), "applied": round(float(e.applied), 4),
+                           "mass": round(float(e.mean[0]), 4), "com": np.round(e.mean[1:], 4).tolist(),
+                           "kind": e.kind, "accepted": bool(e.accepted), "seconds": round(float(e.seconds), 4)}
+                          for e in getattr(estimator, "history", [])],
+            "theta_hat": np.round(getattr(estimator, "theta", np.zeros(4)), 4).tolist(),
+            "max_abs_tau": peak(sent), "tau_limit": limit.tolist(), "max_abs_dtau": peak(dtau),
+            "callback_ms": {"median": float(np.median(cb)) if len(cb) else 0.0,
+                            "p99": float(np.percentile(cb, 99)) if len(cb) else 0.0,
+                            "max": float(cb.max()) if len(cb) else 0.0}}
+
+
+def save_log(path, log, estimator=None):
+    """An .npz diagnosis.logs.load_log reads: t, q, dq, tau_J, tau_ext (paper sign, tau_ext_sign='paper'), plus
+    tau (the controller's torque, gravity included), tau_cmd (sent, gravity-free), theta_hat (T, 4), callback_s, and
+    the estimates: est_t, est_applied (K,), est_theta (K, 4), est_kind (K,)."""
+    hist = list(getattr(estimator, "history", []))
+    np.savez(path, **log, tau_ext_sign="paper", est_t=np.array([e.t for e in hist], float),
+             est_applied=np.array([e.applied for e in hist], float),
+             est_theta=np.array([e.mean for e in hist], float).reshape(-1, 4),
+             est_kind=np.array([e.kind for e in hist], dtype=str))
+
+
+# --- command line ------------------------------------------------------------------------------------------------
+def make_backend(args, rng: np.random.Generator):
+    if args.sim:
+        payload = [(args.seconds / 2, args.sim_payload, (0.0, 0.0, 0.05))] if args.sim_payload > 0 else []
+        return SimBackend(rng, payload=payload)
+    if args.lib == "pylibfranka":
+        return PylibfrankaBackend(args.robot_ip, realtime=not args.no_realtime, control=not args.dry_run)
+    return PandaPyBackend(args.robot_ip, control=not args.dry_run)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robot-ip", help="the robot's FCI address (not needed with --sim)")
+    ap.add_argument("--lib", choices=LIBS, default="pylibfranka")
+    ap.add_argument("--task", choices=TASKS, default="hold")
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--log", help="write the run to this .npz (diagnosis.logs.load_log reads it)")
+    ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
+    ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
+    ap.add_argument("--sim-payload", type=float, default=0.0, help="kg added at half time with --sim")
+    ap.add_argument("--stiffness-scale", type=float, default=1.0, help="DS gains and posture spring x S, (0, 1]")
+    ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
+    ap.add_argument("--seed", type=int, default=0, help="the --sim plant's noise")
+    args = ap.parse_args(argv)
+    if not args.sim and not args.robot_ip:
+        ap.error("--robot-ip: expected the robot's address (or --sim), found none")
+    for name, v, ok, want in (("--seconds", args.seconds, np.isfinite(args.seconds) and args.seconds > 0, "> 0 s"),
+                              ("--stiffness-scale", args.stiffness_scale,
+                               np.isfinite(args.stiffness_scale) and 0 < args.stiffness_scale <= 1, "in (0, 1]"),
+                              ("--sim-payload", args.sim_payload, 0 <= args.sim_payload <= 3, "0..3 kg")):
+        if not ok:
+            raise ValueError(f"{name}: expected {want}, found {v!r}")
+    robot = Robot.panda()
+    try:
+        backend = make_backend(args, np.random.default_rng(args.seed))
+    except RuntimeError as err:
+        print(f"franka.py: not started: {err}", file=sys.stderr)
+        return 2
+    controller = make_controller(robot, backend.initial.q, args.task, args.stiffness_scale)
+    estimator = RME(robot, rng=np.random.default_rng(args.seed + 1))
+    summary, log = run_loop(backend, robot, controller, estimator, args.seconds, dry_run=args.dry_run)
+    if args.log:
+        save_log(args.log, log, estimator)
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        print(f"{summary['cycles']} cycles, {summary['seconds']:.3f} s, stopped: {summary['stopped']}; estimates: "
+              f"{[(e['t'], e['mass']) for e in summary['estimates']]}; callback median/p99/max "
+              f"{summary['callback_ms']['median']:.2f}/{summary['callback_ms']['p99']:.2f}/"
+              f"{summary['callback_ms']['max']:.2f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,251 @@
+"""franka.py: the 1 kHz loop end to end on the project's plant, the safety layer against closed forms, libfranka's
+tau_ext sign, the backends' refusal to start without their package or robot, and (when installed) pylibfranka
+against the franky-sim FCI server on 127.0.0.1."""
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import franka
+from diagnosis.logs import load_log, read_npz
+from dynamics import Robot
+from rme import RME
+
+ROBOT = Robot.panda()
+LIMIT = ROBOT.torque_limits()
+T_ADD, M_ADD, R_ADD = 1.0, 1.0, (0.0, 0.0, 0.05)
+
+
+@pytest.fixture(scope="module")
+def hold_run(tmp_path_factory):
+    """A 3 s hold on the realistic plant with 1 kg added at 1 s; the log saved and the plant kept."""
+    backend = franka.SimBackend(np.random.default_rng(3), payload=[(T_ADD, M_ADD, R_ADD)])
+    ctrl = franka.make_controller(ROBOT, backend.initial.q, "hold")
+    est = RME(ROBOT, rng=np.random.default_rng(4))
+    summary, log = franka.run_loop(backend, ROBOT, ctrl, est, seconds=3.0)
+    path = tmp_path_factory.mktemp("franka") / "hold.npz"
+    franka.save_log(path, log, est)
+    return summary, log, path, backend
+
+
+def test_sim_hold_detects_kilogram_and_reads_its_mass_at_rest(hold_run):
+    summary, log, _, backend = hold_run
+    assert summary["cycles"] == 3000 and summary["stopped"] == "end"
+    assert backend.plant.theta[0] == M_ADD                        # the plant did carry the load
+    applied = [e for e in summary["estimates"] if e["accepted"]]
+    assert applied and T_ADD < applied[0]["t"] < T_ADD + 1.0     # detected after it was added, within 1 s
+    assert any(e["kind"] == "at rest" for e in applied)
+    assert abs(summary["theta_hat"][0] - M_ADD) < 0.1
+    assert summary["callback_ms"]["median"] > 0
+
+
+def test_sim_hold_torques_within_limits_and_rate_and_finite(hold_run):
+    _, log, _, _ = hold_run
+    for key in ("q", "dq", "tau_J", "tau_ext", "tau", "tau_cmd"):
+        assert np.all(np.isfinite(log[key])), key
+    sent = log["tau_cmd"] + ROBOT.gravity(log["q"])               # what the drives deliver, recomputed here
+    assert np.all(np.abs(sent) <= LIMIT + 1e-9)
+    steps = np.diff(np.vstack([np.zeros((1, 7)), log["tau_cmd"]]), axis=0)
+    assert np.abs(steps).max() <= 1.0 + 1e-9
+    assert np.abs(steps).max() > 0.5                              # the limiter had something to do (load applied)
+
+
+def test_sim_tau_ext_is_paper_sign_minus_the_load_torque(hold_run):
+    """Paper sign (Eq. 1): tau_ext = model - tau_J, so a load the model lacks reads, at rest, as the torque its weight
+    applies, +payload_torque (dynamics.py); libfranka's tau_ext_hat_filtered reads it negated."""
+    summary, log, _, backend = hold_run
+    t, first = log["t"], summary["estimates"][0]["t"]
+    before = (t > T_ADD - 0.3) & (t < T_ADD)
+    after = (t > first - 0.1) & (t < first)                       # loaded, not yet compensated
+    change = log["tau_ext"][after].mean(0) - log["tau_ext"][before].mean(0)
+    q = log["q"][after].mean(0)
+    expected = ROBOT.payload_torque(q, np.array([M_ADD, *R_ADD]))
+    big = np.abs(expected) > 1.0                                  # J2 and J4 at the ready pose
+    assert big.sum() >= 2
+    np.testing.assert_allclose(change[big], expected[big], rtol=0.25)
+
+
+def test_log_loads_with_load_log_in_paper_sign(hold_run):
+    _, log, path, _ = hold_run
+    raw = read_npz(path)
+    np.testing.assert_array_equal(raw["tau_ext"], log["tau_ext"])
+    loaded = load_log(path)
+    assert len(loaded) == len(log["t"])
+    np.testing.assert_allclose(loaded.q, log["q"], atol=1e-3)
+    np.testing.assert_allclose(loaded.tau_ext.mean(0), log["tau_ext"].mean(0), atol=0.01)   # smoothed, same sign
+    with np.load(path) as z:
+        assert str(z["tau_ext_sign"]) == "paper" and z["est_theta"].shape[1] == 4
+
+
+# --- safety: closed forms ----------------------------------------------------------------------------------------
+def test_safety_subtracts_gravity():
+    s = franka.Safety(LIMIT)
+    G = np.array([0.1, -0.3, 0.2, 0.4, -0.1, 0.05, 0.0])
+    tau = G + np.array([0.5, -0.5, 0.25, 0.0, 0.1, -0.9, 0.3])   # within one rate step of zero
+    np.testing.assert_allclose(s.command(tau, G), tau - G, atol=1e-15)
+
+
+def test_safety_rate_limits_a_step_to_one_newton_metre_per_cycle():
+    s, G = franka.Safety(LIMIT), np.full(7, 2.0)
+    target = np.array([5.0, -5.0, 0.3, 2.5, -2.5, 0.0, 1.0])
+    for k in range(1, 7):
+        cmd = s.command(G + target, G)
+        np.testing.assert_allclose(cmd, np.clip(target, -k, k))
+
+
+def test_safety_clips_total_torque_to_limits_over_the_rate_limit():
+    s = franka.Safety(LIMIT)
+    G = np.array([10.0, -10.0, 0.0, 0.0, 1.0, -1.0, 0.0])
+    s.last = LIMIT - G - 0.5                                      # half a Nm below the limit
+    cmd = s.command(np.full(7, 1e3), G)
+    np.testing.assert_allclose(cmd + G, LIMIT)
+    s.last = LIMIT - G + 5.0                                      # beyond: the limit wins over the rate limit
+    np.testing.assert_allclose(s.command(np.full(7, 1e3), G) + G, LIMIT)
+
+
+def test_safety_holds_last_command_on_nan():
+    s, G = franka.Safety(LIMIT), np.zeros(7)
+    np.testing.assert_array_equal(s.command(np.full(7, np.nan), G), np.zeros(7))   # before any: zero
+    good = s.command(np.full(7, 0.7), G)
+    bad = np.full(7, 0.3)
+    bad[2] = np.inf
+    np.testing.assert_array_equal(s.command(bad, G), good)
+    np.testing.assert_array_equal(s.command(np.full(7, 0.3), np.full(7, np.nan)), good)
+    assert s.held == 3
+
+
+def test_safety_ramps_down_to_zero_at_the_rate_limit():
+    s = franka.Safety(LIMIT)
+    s.last = np.array([3.5, -2.0, 0.0, 0.4, 0.0, 0.0, 0.0])
+    seq = [s.ramp_down()[0] for _ in range(5)]
+    assert seq == [2.5, 1.5, 0.5, 0.0, 0.0]
+
+
+def test_safety_rejects_bad_limits_and_shapes():
+    with pytest.raises(ValueError, match="tau_max"):
+        franka.Safety([87.0, -1.0])
+    with pytest.raises(ValueError, match="tau, G"):
+        franka.Safety(LIMIT).command(np.zeros(6), np.zeros(7))
+
+
+# --- sign, refusal, stop ------------------------------------------------------------------------------------------
+def test_libfranka_sign_conversion_and_sim_backend_reports_libfranka_sign():
+    x = np.array([1.0, -2.0, 3.0, 0.0, -0.5, 0.25, 7.0])
+    np.testing.assert_array_equal(franka.paper_tau_ext(x), -x)
+    b = franka.SimBackend(np.random.default_rng(0))
+    b.write(np.ones(7))
+    np.testing.assert_array_equal(b.read().tau_ext_hat_filtered, -b._s.tau_ext)
+    np.testing.assert_array_equal(b.read().tau_J, b._s.tau_J)
+
+
+@pytest.mark.parametrize("cls, module", [(franka.PylibfrankaBackend, "pylibfranka"),
+                                         (franka.PandaPyBackend, "panda_py")])
+def test_backend_refuses_without_its_package(monkeypatch, cls, module):
+    monkeypatch.setitem(sys.modules, module, None)                # import raises ImportError
+    with pytest.raises(RuntimeError, match="not installed"):
+        cls("127.0.0.1")
+
+
+def test_cli_refuses_without_package_and_checks_arguments(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "pylibfranka", None)
+    assert franka.main(["--robot-ip", "127.0.0.1", "--seconds", "0.1"]) == 2
+    assert "not installed" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--stiffness-scale"):
+        franka.main(["--sim", "--stiffness-scale", "2"])
+    with pytest.raises(ValueError, match="--seconds"):
+        franka.main(["--sim", "--seconds", "-1"])
+
+
+def _free_port_closed(host="127.0.0.1"):
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def test_pylibfranka_refuses_when_no_robot_answers():
+    pytest.importorskip("pylibfranka")
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="no robot answered"):
+        franka.PylibfrankaBackend("127.0.0.1", realtime=False)    # nothing listens on 127.0.0.1:1337
+    assert time.monotonic() - t0 < 30
+
+
+class _Failing:
+    """A sim backend whose read() raises `error` at cycle `at`; records stop()."""
+
+    def __init__(self, at, error):
+        self.inner, self.at, self.error, self.k, self.stopped = franka.SimBackend(np.random.default_rng(1)), at, error, 0, 0
+        self.initial = self.inner.initial
+
+    def read(self):
+        self.k += 1
+        if self.k == self.at:
+            raise self.error
+        return self.inner.read()
+
+    def write(self, cmd):
+        self.inner.write(cmd)
+
+    def stop(self):
+        self.stopped += 1
+
+
+def test_loop_stops_cleanly_on_ctrl_c_and_on_errors():
+    b = _Failing(300, KeyboardInterrupt())
+    ctrl = franka.make_controller(ROBOT, b.initial.q, "limit-cycle", 0.5)
+    summary, log = franka.run_loop(b, ROBOT, ctrl, None, seconds=1.0)
+    assert summary["stopped"].startswith("interrupted") and summary["cycles"] == 299 and b.stopped == 1
+    b = _Failing(200, RuntimeError("link lost"))
+    with pytest.raises(RuntimeError, match="link lost"):
+        franka.run_loop(b, ROBOT, franka.make_controller(ROBOT, b.initial.q), None, seconds=1.0)
+    assert b.stopped == 1
+
+
+def test_dry_run_prints_and_commands_nothing(capsys):
+    b = franka.SimBackend(np.random.default_rng(2))
+    sent = []
+    write = b.write
+    b.write = lambda cmd: (sent.append(np.array(cmd)), write(cmd))
+    summary, _ = franka.run_loop(b, ROBOT, franka.make_controller(ROBOT, b.initial.q), None, seconds=0.2,
+                                 dry_run=True, print_every=0.1)
+    assert np.all(np.array(sent) == 0) and len(sent) == 200
+    assert capsys.readouterr().out.count("would command") == 2
+
+
+# --- pylibfranka against franky-sim (skipped unless both are installed) -------------------------------------------
+def test_pylibfranka_hold_on_franky_sim():
+    pytest.importorskip("pylibfranka")
+    pytest.importorskip("franky_sim")
+    exe = shutil.which("franky-sim") or os.path.join(os.path.dirname(sys.executable), "franky-sim")
+    server = subprocess.Popen([exe, "-s", "mujoco", "--hostname", "127.0.0.1"], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    try:
+        t0, ready = time.monotonic(), False
+        for _ in range(200):                                      # bounded: 200 lines or 60 s
+            line = server.stdout.readline()
+            if "Connect to the server" in line:
+                ready = True
+                break
+            if not line or time.monotonic() - t0 > 60:
+                break
+        assert ready, "franky-sim did not start"
+        b = franka.PylibfrankaBackend("127.0.0.1", realtime=False)
+        ctrl = franka.make_controller(ROBOT, b.initial.q, "hold", 0.5)
+        # franky-sim reports tau_ext_hat_filtered = tau_J (no external torque estimate): no estimator here
+        summary, log = franka.run_loop(b, ROBOT, ctrl, None, seconds=1.0)
+        assert summary["cycles"] == 1000 and summary["stopped"] == "end"
+        assert np.abs(log["q"] - log["q"][0]).max() < 0.02          # held
+        steps = np.diff(np.vstack([np.zeros((1, 7)), log["tau_cmd"]]), axis=0)
+        assert np.abs(steps).max() <= 1.0 + 1e-9
+    finally:
+        server.terminate()                                        # this server's own process
+        try:
+            server.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait(timeout=10)
