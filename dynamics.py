@@ -41,8 +41,7 @@ def phi_of(theta):
     return np.concatenate([theta[..., :1], theta[..., :1] * theta[..., 1:]], axis=-1)
 
 
-def theta_of(phi):
-    """theta = (m, r) (..., 4) for phi = (m, m r) (..., 4); r is NaN where m = 0."""
+def theta_of(phi):                      # theta = (m, r) (..., 4) for phi = (m, m r) (..., 4); r is NaN where m = 0
     phi = np.asarray(phi, dtype=float)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.concatenate([phi[..., :1], phi[..., 1:] / phi[..., :1]], axis=-1)
@@ -122,7 +121,9 @@ class Robot:
             model = mujoco.MjModel.from_xml_path(str(path))
         except Exception as err:                        # MuJoCo reports parse errors as ValueError/Exception
             raise ValueError(f"path: could not load MJCF {path!r}: {err}") from None
-        return cls(model, ee)
+        robot = cls(model, ee)
+        robot.xml_path = os.path.abspath(str(path))            # saved with fitted models (Model.save)
+        return robot
 
     def torque_limits(self) -> np.ndarray:
         """|tau| limit per joint (n,) [Nm] from the model's force limits: the joint's actfrcrange, each actuator's

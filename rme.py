@@ -30,19 +30,16 @@ class RMESettings:
     max_mass: float = 3.0          # kg, Panda's rated payload: the compensation never assumes more
     max_com: float = 0.3           # m, |rx|, |ry|, |rz| of a payload a hand can carry (ours); an estimate with its
                                    #   CoM further out is not a payload (a push, a bias change) and is not applied
-    min_explained: float = 0.9     # ours: a detection is applied only if the new estimate explains at least this
-                                   #   share of the torque change in its window; a change of the pose-dependent bias
-                                   #   after a large move (not a load) explains 0.6-0.7, real loads 0.97-1.0 (sim.py
-                                   #   pick-place and basket, realistic preset)
+    min_explained: float = 0.9     # ours: share of the window's torque change a new estimate must explain; a bias
+                                   #   change after a large move explains 0.6-0.7, loads 0.97-1.0 (pick-place, basket)
     refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
                                    #   part of the load while it moved: the first estimate reads light by a few %)
     rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
     refine_within: float = 2.0     # s after the detection; later, no estimate at rest is made (the monitor checks)
     monitor: bool = True           # ours: while the arm is still, check that the compensated estimate explains
                                    #   tau_ext; if it persistently does not, estimate again (see RME.update)
-    monitor_threshold: float = 0.3  # Nm, |mean residual - its level when last explained| that counts as unexplained
-                                   #   (a 0.1 kg change moves the Panda's joint torques by about 0.5 Nm at the ready
-                                   #   pose; the realistic sensor's pose-dependent bias drifts by < 0.1 Nm at rest)
+    monitor_threshold: float = 0.3  # Nm, |mean residual - the level last explained| that counts as unexplained (0.1 kg
+                                   #   moves the Panda's torques by ~0.5 Nm; the realistic bias drifts < 0.1 Nm at rest)
     monitor_window: int = 300      # samples (300 ms): the arm calm and the residual level steady this long
     monitor_speed: float = 0.02    # rad/s: every joint slower than this counts as calm for the monitor (friction
                                    #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
@@ -86,7 +83,7 @@ class Estimate:
     seconds: float                 # wall time of network + VI
     iterations: int
     converged: bool
-    t: float = float("nan")        # stream time of the detection (update only)
+    t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
     kind: str = "window"             # "detection", "at rest" (once the arm is still), "monitor"
@@ -97,12 +94,14 @@ class Estimate:
 
 class RME:
     """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
-    use, returning the compensation torque (7,) to add to the controller's torque."""
+    use, returning the compensation torque (7,) to add to the controller's torque. executor (ours): runs each streamed
+    estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update."""
 
     def __init__(self, robot: Robot | None = None, weights: str | None = WEIGHTS, settings: RMESettings = RMESettings(),
-                 rng: np.random.Generator | None = None, correction=None):
+                 rng: np.random.Generator | None = None, correction=None, executor=None):
         self.robot = Robot.panda() if robot is None else robot
-        self.settings, self.correction = settings, correction
+        self.settings, self.correction, self.executor = settings, correction, executor
+        self._job, self._queued = None, None           # (future, request) in flight; a request waiting for it
         self.rng = np.random.default_rng(0) if rng is None else rng
         self.net = self._load_network(weights) if settings.use_network else None
         if not isinstance(settings, RMESettings):
@@ -199,20 +198,30 @@ class RME:
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         self._r[i] = r
         if self.detector.update(r, pseudo_force(J, r, s.detector.lam, check=False)) and self._k >= keep:
-            self._on_detection()
+            if self._job is None:
+                self._on_detection()
+            else:                                      # formed once the job in flight is done (the newest wins)
+                self._queued = self._k
         speed = np.abs(dq).max()
         self._still = self._still + 1 if speed < s.rest_speed else 0
         self._calm = self._calm + 1 if speed < s.monitor_speed else 0
-        if self._refine is not None and self._pending is None:
+        if self._job is not None and self._job[0].done():              # only polled: the loop never waits
+            (future, request), self._job = self._job, None
+            self._judge(*request, *future.result())
+        idle = self._pending is None and self._job is None and self._queued is None
+        if self._refine is not None and idle:
             if self._still >= s.window:
                 self._on_rest()
             elif self._k > self._refine["deadline"]:
                 self._refine = None                    # the arm never rested: the monitor checks it when it does
-        elif s.monitor and self._pending is None and self._calm >= s.monitor_window and self._k % 10 == 0:
+        elif s.monitor and idle and self._calm >= s.monitor_window and self._k % 10 == 0:
             self._check_consistency()
         if self._pending is not None and self._k >= self._pending[0]:
             self._apply(*self._pending[1:], Y, J)
             tau_mm = Y @ self._phi
+        if self._queued is not None and self._job is None:             # under the compensation just applied
+            asked, self._queued = self._queued, None
+            self._on_detection(asked)
         self._last = np.clip(-tau_mm, -self._limit, self._limit)
         return self._last
 
@@ -264,21 +273,24 @@ class RME:
             return local                     # a state already judged not to be a payload (a drifted bias)
         return trusted
 
-    def _on_detection(self):
+    def _on_detection(self, asked=None):
         """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
-        change during a pending estimate at rest supersedes it."""
+        change during a pending estimate at rest supersedes it. asked: the sample of a detection made during a job."""
         s = self.settings
         Q, TAU, Rs = self._buffer()
         q_ref = Q[:s.reference].mean(axis=0)
         if self._undone(Q[-1], Rs[-s.window:].mean(axis=0)):
             return                         # back to the level before a change that was no payload: its release
-        bias = self._bias(Rs[:s.reference], q_ref)
-        e = self._change(Q[-s.window:], TAU[-s.window:] - bias, self.theta, "detection")   # levels: only when calm
-        self._rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
-        if e.accepted:                     # a rejected detection (the arm answering a compensation) keeps the last
-            self._refine = None            #   pending estimate at rest
-        if e.accepted and s.refine:
-            self._refine = dict(bias=bias, before=self.theta.copy(), deadline=self._k + int(s.refine_within * s.rate))
+        pending = self._refine                   # within refine_within of an accepted change: refer to before it
+        bias = pending["bias"] if pending is not None else self._bias(Rs[:s.reference], q_ref)
+        before = self.theta.copy()
+        def then(e):
+            self._rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
+            if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
+                self._refine = None        #   pending estimate at rest
+            if e.accepted and s.refine:
+                self._refine = dict(bias=bias, before=before, deadline=self._k + int(s.refine_within * s.rate))
+        self._change(Q[-s.window:], TAU[-s.window:] - bias, before, "detection", then, asked=asked)  # levels: at rest
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -286,7 +298,7 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest")
+        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest", lambda e: None)
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -319,16 +331,17 @@ class RME:
             gap = np.linalg.norm(level - trusted)
             accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(_safe_theta(
                 e.mean, self.theta, s.max_mass))).mean(axis=0)) <= min(s.monitor_threshold, 0.5 * gap)
-        e = self._change(Q[-s.window:], TAU[-s.window:] - reference, self.theta, "monitor", accept,
-                         level=None if first else (q, trusted))
-        if e.accepted and first:                                       # what the payload leaves is the bias
-            Y = self.robot.payload_regressor(Q[-s.window:])
-            self._pending[2] = (q, (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0))
-        elif first:
-            self._levels.put(q, level)                                 # no payload: the level is the bias
-            self.history.pop()                                         # (establishing it is not an estimate)
-        elif not e.accepted:
-            self._muted.put(q, level)
+        def then(e):
+            if e.accepted and first:                                   # what the payload leaves is the bias
+                Y = self.robot.payload_regressor(Q[-s.window:])
+                self._pending[2] = (q, (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0))
+            elif first:
+                self._levels.put(q, level)                             # no payload: the level is the bias
+                self.history.pop()                                     # (establishing it is not an estimate)
+            elif not e.accepted:
+                self._muted.put(q, level)
+        self._change(Q[-s.window:], TAU[-s.window:] - reference, self.theta, "monitor", then, accept,
+                     level=None if first else (q, trusted))
         self._calm = 0
 
     def _payload_like(self, d, q, gate):
@@ -339,11 +352,19 @@ class RME:
         explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
         return explained >= gate and self._phi[0] + dphi[0] >= -0.05
 
-    def _change(self, Qw, Tw, theta_before, kind, accept=None, level=None) -> Estimate:
-        """Estimate on a referred window, judge it against the payload before the change, schedule it if accepted
-        (accept(e, Tw, Y), default: explained share >= min_explained); level: the residual level it will leave."""
-        s, k = self.settings, self._k
-        e, Y = self._estimate(Qw, Tw)
+    def _change(self, Qw, Tw, theta_before, kind, then, accept=None, level=None, asked=None):
+        """Estimate on a referred window now, or as a job on the executor (judged once update finds it done)."""
+        request = (self._k if asked is None else asked, Tw, theta_before, kind, then, accept, level)
+        if self.executor is None:
+            self._judge(*request, *self._estimate(Qw, Tw))
+        else:
+            self._job = (self.executor.submit(self._estimate, Qw.copy(), Tw.copy()), request)
+
+    def _judge(self, k, Tw, theta_before, kind, then, accept, level, e, Y):
+        """Judge the estimate e of the window requested at sample k against the payload before the change, schedule
+        it if accepted (accept(e, Tw, Y), default: explained share >= min_explained) and hand it to then(e);
+        level: the residual level it will leave."""
+        s = self.settings
         e.t, e.kind = k / s.rate, kind
         before = np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2)        # what the estimate before leaves unexplained
         e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
@@ -355,10 +376,10 @@ class RME:
             e.reason = (f"explains only {100 * e.explained:.0f} % of the change" if accept is None else
                         "it does not make the compensation consistent with tau_ext")
         self.history.append(e)
-        if e.accepted:
+        if e.accepted:                     # with an executor, on the sample the job is found done
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
-            self._pending = [k + delay, e, level]
-        return e
+            self._pending = [k + delay if self.executor is None else self._k, e, level]
+        then(e)
 
 
 def _safe_theta(new, old, max_mass):

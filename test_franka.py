@@ -1,6 +1,7 @@
 """franka.py: the 1 kHz loop end to end on the project's plant, the safety layer against closed forms, libfranka's
 tau_ext sign, the backends' refusal to start without their package or robot, and (when installed) pylibfranka
 against the franky-sim FCI server on 127.0.0.1."""
+import json
 import os
 import shutil
 import socket
@@ -159,6 +160,17 @@ def test_cli_refuses_without_package_and_checks_arguments(monkeypatch, capsys):
         franka.main(["--sim", "--stiffness-scale", "2"])
     with pytest.raises(ValueError, match="--seconds"):
         franka.main(["--sim", "--seconds", "-1"])
+
+
+def test_cli_runs_the_estimates_beside_the_loop_and_restores_the_switch_interval(capsys):
+    """By default RME's estimates run in a thread (the loop only polls them); --sync-estimate runs them in the loop."""
+    switch = sys.getswitchinterval()
+    assert franka.main(["--sim", "--seconds", "2.5", "--sim-payload", "1.0", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["estimate_in"] == "thread" and sys.getswitchinterval() == switch
+    applied = [e for e in summary["estimates"] if e["accepted"]]
+    assert applied and 1.25 < applied[0]["t"] < applied[0]["applied"] < applied[0]["t"] + 0.1   # asked, then applied
+    assert abs(summary["theta_hat"][0] - 1.0) < 0.1 and summary["missed_cycles"] == 0
 
 
 def _free_port_closed(host="127.0.0.1"):

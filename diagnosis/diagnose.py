@@ -232,6 +232,10 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     p.add_argument("--model", default="nominal", choices=("nominal", "static"),
                    help="starting model: nominal = gravity + motion (Eq. 1); static = gravity only (RME's)")
     p.add_argument("--drop-nan", action="store_true", help="drop rows with NaN/inf (their count is reported)")
+    p.add_argument("--xml", metavar="ARM.xml", help="the arm's MJCF (default: the project's Panda)")
+    p.add_argument("--ee", default="ee", metavar="SITE", help="the end-effector site in --xml (default: ee)")
+    p.add_argument("--save", metavar="MODEL.json", help="save the model after --add (Model.load reads it; "
+                   "RME(correction=Model.load(path)) uses it)")
     args = p.parse_args(argv)
     if args.log is None:
         p.error("a LOG file is needed")
@@ -241,9 +245,16 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
         except ImportError:
             print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
             return 2
+    if args.save and not args.add:
+        p.error("--save needs --add (the effects to fit and save)")
     try:
+        robot = Robot.from_xml(args.xml, ee=args.ee) if args.xml else Robot.panda()
         log = load_log(args.log, LogConfig(drop_nan=args.drop_nan))
-        out = run(log, args.add, args.model)
+        if log.n != robot.n:
+            raise ValueError(f"log: {log.n} joints, expected {robot.n} like the arm ({args.xml or 'the Panda'})")
+        out = run(log, args.add, args.model, robot=robot)
+        if args.save:
+            out["added"].save(args.save)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -286,7 +297,8 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None) ->
         text += [format_comparison(after),
                  "  held-out RMS [Nm]  " + " ".join(f"{v:.3f}" for v in held)]
         js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit, "rms_heldout": held,
-                       "params": {e.name: added.params[e.name] for e in added.free}}
+                       "params": {e.name: added.params[e.name] for e in added.free},
+                       "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl}}
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)
     return out

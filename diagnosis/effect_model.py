@@ -3,6 +3,7 @@ correction it offers RME: the fitted torques beyond the nominal model in the pap
 from __future__ import annotations
 
 import copy
+import json
 
 import numpy as np
 
@@ -174,6 +175,54 @@ class Model:
             text = e.describe(self.params[e.name], self.nl.get(e.name), self.robot.n)
             lines.append(f"  {e.name:14s} ({tag}): {text}")
         return "\n".join(lines)
+
+    def save(self, path) -> None:
+        """Write the model as JSON: every effect with its parameters (nonlinear ones included), fixed or fitted, the
+        arm's MJCF path and ee site. Only library effects can be saved (a custom one is code: rebuild it)."""
+        unknown = [e.name for e in self.effects if e.name not in self.library or self.library[e.name] is not e]
+        if unknown:
+            raise ValueError(f"model: custom effects {unknown} cannot be saved (only library effects can)")
+        doc = {"format": "rme effect model", "version": 1,
+               "robot": {"xml": getattr(self.robot, "xml_path", None), "ee": self.robot.ee, "n": self.robot.n},
+               "fitted": self.fitted,
+               "effects": [{"name": e.name, "fixed": e.name in self.fixed, "params": self.params[e.name].tolist(),
+                            "nonlinear": self.nl[e.name].tolist() if e.name in self.nl else None}
+                           for e in self.effects]}
+        with open(path, "w") as f:
+            json.dump(doc, f, indent=1)
+
+    @classmethod
+    def load(cls, path, robot: Robot | None = None, config: EffectConfig = EffectConfig()) -> "Model":
+        """The model `save` wrote, with every parameter as saved; robot: the arm (default: the saved MJCF and site,
+        else the Panda). ValueError naming the file and what is wrong."""
+        try:
+            with open(path) as f:
+                doc = json.load(f)
+        except (OSError, ValueError, TypeError) as err:
+            raise ValueError(f"path: could not read a model from {path!r}: {err}") from None
+        if not isinstance(doc, dict) or doc.get("format") != "rme effect model":
+            raise ValueError(f"{path}: expected a model written by Model.save, found no 'rme effect model' format")
+        saved = doc.get("robot") or {}
+        if robot is None:
+            robot = Robot.from_xml(saved["xml"], ee=saved.get("ee", "ee")) if saved.get("xml") else Robot.panda()
+        if saved.get("n") not in (None, robot.n):
+            raise ValueError(f"{path}: the model is for an arm of {saved['n']} joints, the robot has {robot.n}")
+        model = cls(robot, config)
+        for item in doc.get("effects", []):
+            name = item.get("name")
+            if name not in model.library:
+                raise ValueError(f"{path}: unknown effect {name!r}; expected one of {sorted(model.library)}")
+            params = np.asarray(item["params"], dtype=float)
+            e = model.library[name]
+            if params.shape != (e.size(robot.n),) or not np.all(np.isfinite(params)):
+                raise ValueError(f"{path}: effect {name!r} expected {e.size(robot.n)} finite parameters, found "
+                                 f"{params.shape}")
+            model.add(name, fixed=params if item.get("fixed") else None)
+            model.params[name] = params
+            if item.get("nonlinear") is not None:
+                model.nl[name] = np.asarray(item["nonlinear"], dtype=float)
+        model.fitted = bool(doc.get("fitted", False))
+        return model
 
     def _check_fitted(self):
         if self.free and not self.fitted:
