@@ -366,7 +366,7 @@ class RME:
         level: the residual level it will leave."""
         s = self.settings
         e.t, e.kind = k / s.rate, kind
-        before = np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2)        # what the estimate before leaves unexplained
+        before = max(np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2), 1e-12)   # what the estimate before leaves
         e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
         plausible = bool(np.all(np.abs(e.mean[1:]) <= s.max_com))
         e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Y))

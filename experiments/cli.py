@@ -31,6 +31,8 @@ DEMOS = {
                        "experiments.cli:_detector_bench", ("seed", "json")),
     "vi-bench": ("VI alone on simulated windows: time, iterations, error, coverage", "experiments.cli:_vi_bench",
                  ("seed", "json")),
+    "qp-bench": ("the QP solver against quadprog on random problems (needs quadprog, a test-only package)",
+                 "experiments.cli:_qp_bench", ("seed", "json")),
     "reliability": ("randomised loads, removals and pushes on random poses: how many changes are compensated",
                     "experiments.reliability:main", ("seed", "json", "episodes")),
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
@@ -103,3 +105,10 @@ def _vi_bench(args):
 def _diagnose_bench(args):
     from experiments.timing import diagnose_benchmark
     _print(args, "diagnose benchmark", diagnose_benchmark())
+
+
+def _qp_bench(args):
+    from experiments.qp_bench import qp_benchmark
+    res = qp_benchmark(seed=args.seed, show=not args.json)
+    if args.json:
+        print(json.dumps(res))
