@@ -34,6 +34,9 @@ class DiagnoseConfig:
     min_drop: float = 0.10      # an effect must cut the held-out RMS of some joint by >= 10 % ...
     t_min: float = 3.0          # ... with t >= 3 for the per-block log error ratios (one-sided p < 0.01) ...
     min_torque: float = 0.01    # Nm, ... explaining >= 0.01 Nm RMS there: half the Panda's 0.02 Nm torque resolution
+    min_total_drop: float = 0.01  # and cut the RMS of the summed held-out error by >= 1 % with t >= t_min (not 10 %:
+                                  # an effect of a wrist joint is small beside the shoulders' error in the sum) ...
+    max_rise: float = 0.05      # ... and raise no joint's held-out RMS by >= 5 % with t >= t_min
     max_add: int = 6            # forward-selection steps at most
     min_blocks: int = 6         # fewer hold-out blocks: the log is too short to diagnose
 
@@ -82,9 +85,10 @@ def compare(model: Model, log, config: CompareConfig = CompareConfig()) -> Compa
 @dataclass
 class Diagnosis:
     """diagnose() output. rms (n,): held-out RMS of the input model; ranking: the first round's candidates, best first,
-    each {effect, k, explained, explained_joints, joints, significant, rms_after, drop, t, params}; steps: the forward
-    selection, each {effect, rms_before, rms_after, explained, joints, params}; selected: effect names; model: the input
-    model plus the selected effects, fitted on the whole log; stop: why selection ended."""
+    each {effect, k, explained, explained_joints, joints (improved), worse (joints made worse), significant, rms_after,
+    rms_change (n,) = rms_after / rms_before - 1, total_change, total_t, drop, t, params}; steps: the forward
+    selection, each {effect, rms_before, rms_after, rms_change, explained, joints, params}; selected: effect names;
+    model: the input model plus the selected effects, fitted on the whole log; stop: why selection ended."""
     rms: np.ndarray
     ranking: list
     steps: list
@@ -101,11 +105,15 @@ def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = Diagno
 
     Hold-out: the log is cut into interleaved blocks of config.block seconds; each effect set is fitted on the even
     blocks and scored on the odd ones, and vice versa (2-fold), so both halves see the same motions and an effect
-    cannot win by fitting noise. Significant: on at least one joint the held-out RMS drops by >= min_drop AND the
+    cannot win by fitting noise. Significant (heldout.verdict), all three of: (a) the held-out error falls overall: the
+    RMS of the summed SSE over all joints drops by >= min_total_drop with t >= t_min for the per-block log ratios of the
+    totals; (b) no joint gets worse: no joint's held-out RMS rises by >= max_rise with t >= t_min for its per-block
+    log ratios log(sse_after / sse_before); (c) on at least one joint the held-out RMS drops by >= min_drop AND the
     per-block log error ratios log(sse_before / sse_after) have t >= t_min AND the torque explained there is
-    >= min_torque RMS. Parsimony: a significant candidate with fewer parameters is preferred unless the better-scoring
-    one is significantly better than it by the same rule (e.g. coulomb over sigmoid, payload over rigid_payload on a
-    quasi-static log). Candidates: Effect objects or library names."""
+    >= min_torque RMS. So the selection cannot trade one joint's error for another's. Parsimony: a significant
+    candidate with fewer parameters is preferred unless the better-scoring one is significantly better than it on some
+    joint by rule (c) (e.g. coulomb over sigmoid, payload over rigid_payload on a quasi-static log). Candidates:
+    Effect objects or library names."""
     s = model.signals(log)
     y = s.measured() - model.torque(s, [e for e in model.effects if e.name in model.fixed])
     block = blocks_of(s.t, config.block)
@@ -143,10 +151,12 @@ def _forward_selection(sel: Selection, cands: list, config: DiagnoseConfig):
         if not top["significant"]:
             j = int(np.argmax(top["drop"]))
             return ranking, steps, (f"no remaining effect is significant (best: {top['effect']}, held-out RMS drop "
-                                    f"{100 * top['drop'][j]:.1f} % on J{j + 1}, t = {top['t'][j]:.1f})")
+                                    f"{100 * top['drop'][j]:.1f} % on J{j + 1}, t = {top['t'][j]:.1f}; total "
+                                    f"{100 * top['total_change']:+.1f} %, t = {top['total_t']:.1f}; "
+                                    f"worse on joints {top['worse'] or '-'})")
         steps.append(dict(effect=top["effect"], obj=top["obj"], rms_before=np.sqrt(sel.sse.sum(axis=0) / N),
-                          rms_after=top["rms_after"], explained=top["explained"], joints=top["joints"],
-                          params=top["params"]))
+                          rms_after=top["rms_after"], rms_change=top["rms_change"], explained=top["explained"],
+                          joints=top["joints"], params=top["params"]))
         sel.accept(top)
         cands = [c for c in cands if c.name != top["effect"]]
     return ranking, steps, f"stopped after max_add = {config.max_add} steps"
@@ -186,13 +196,18 @@ def format_diagnosis(d: Diagnosis, config: DiagnoseConfig = DiagnoseConfig()) ->
     """diagnose() as the ranking table, the forward-selection steps and the fitted model."""
     n = len(d.rms)
     lines = [f"  held-out: 2-fold over {d.info['blocks']} interleaved blocks of {d.info['block_s']} s; significant = "
-             f"held-out RMS drop >= {100 * config.min_drop:.0f} % on a joint with t >= {config.t_min} over blocks and "
-             f">= {config.min_torque} Nm RMS explained",
-             f"  {'rank':4s} {'effect':14s} {'params':>6s} {'explained':>9s}  {'joints':14s} held-out RMS after [Nm]"]
+             f"(a) RMS of the summed error over all joints drops >= {100 * config.min_total_drop:.0f} % with t >= "
+             f"{config.t_min} over blocks, (b) no joint's RMS rises >= {100 * config.max_rise:.0f} % with t >= "
+             f"{config.t_min}, (c) RMS drop >= {100 * config.min_drop:.0f} % on a joint with t >= {config.t_min} "
+             f"and >= {config.min_torque} Nm RMS explained",
+             f"  {'rank':4s} {'effect':14s} {'params':>6s} {'explained':>9s}  {'joints':14s} held-out RMS after [Nm]",
+             f"  {'':4s} {'':14s} {'':6s} {'total':>9s}  {'worse':14s} held-out RMS change [%] (negative = better)"]
     for i, r in enumerate(d.ranking):
-        joints = " ".join(map(str, r["joints"])) or "-"
+        joints, worse = " ".join(map(str, r["joints"])) or "-", " ".join(map(str, r["worse"])) or "-"
         lines.append(f"  {i + 1:4d} {r['effect']:14s} {r['k']:6d} {100 * r['explained']:8.1f}%  {joints:14s} "
                      + " ".join(f"{v:.3f}" for v in r["rms_after"]))
+        lines.append(f"  {'':4s} {'':14s} {'':6s} {100 * r['total_change']:+8.1f}%  {worse:14s} "
+                     + " ".join(f"{100 * v:+.1f}" for v in r["rms_change"]))
     lines.append(f"  forward selection, held-out RMS per joint [Nm], J1..J{n}:")
     lines.append("    start       " + " ".join(f"{v:.3f}" for v in d.rms))
     for st in d.steps:
@@ -283,7 +298,9 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None) ->
     js = {"log": i.get("source"), "samples": len(log), "stale_rows": i.get("stale_rows"), "nan_rows": i.get("nan_rows"),
           "model": model.names, "rms": before.rms, "fit_percent": before.fit, "rms_heldout": d.rms,
           "ranking": [{"effect": r["effect"], "explained": r["explained"], "joints": r["joints"],
-                       "significant": r["significant"], "rms_after": r["rms_after"]} for r in d.ranking],
+                       "significant": r["significant"], "rms_after": r["rms_after"], "worse_joints": r["worse"],
+                       "rms_change_percent": 100 * r["rms_change"], "total_change_percent": 100 * r["total_change"]}
+                      for r in d.ranking],
           "selected": d.selected, "stop": d.stop}
     out = {"model": model, "before": before, "diagnosis": d, "log": log}
     if add:

@@ -104,6 +104,12 @@ def blocks_of(t: np.ndarray, seconds: float) -> np.ndarray:
     return b
 
 
+def _tstat(d):
+    """t statistic (k,) of the per-block values d (nb, k): mean / standard error, blocks as independent replicates."""
+    sd = d.std(axis=0, ddof=1) / np.sqrt(d.shape[0])
+    return np.where(sd > 0, d.mean(axis=0) / np.maximum(sd, 1e-300), np.where(d.mean(axis=0) > 0, np.inf, 0.0))
+
+
 def significance(sse_old, sse_new, config, samples: int):
     """Per joint (n,): the held-out RMS drop 1 - rms_new / rms_old; the t statistic of the per-block log error ratios
     d_b = log(sse_old_b / sse_new_b) (blocks as independent replicates, so correlated samples do not inflate it;
@@ -111,11 +117,27 @@ def significance(sse_old, sse_new, config, samples: int):
     sqrt(rms_old^2 - rms_new^2); and whether all three pass config's min_drop, t_min and min_torque."""
     old, new = sse_old.sum(axis=0), sse_new.sum(axis=0)
     drop = 1 - np.sqrt(new / np.maximum(old, 1e-300))
-    d = np.log(np.maximum(sse_old, 1e-300) / np.maximum(sse_new, 1e-300))
-    sd = d.std(axis=0, ddof=1) / np.sqrt(d.shape[0])
-    tstat = np.where(sd > 0, d.mean(axis=0) / np.maximum(sd, 1e-300), np.where(d.mean(axis=0) > 0, np.inf, 0.0))
+    tstat = _tstat(np.log(np.maximum(sse_old, 1e-300) / np.maximum(sse_new, 1e-300)))
     torque = np.sqrt(np.maximum(old - new, 0.0) / samples)
     return drop, tstat, (drop >= config.min_drop) & (tstat >= config.t_min) & (torque >= config.min_torque)
+
+
+def verdict(sse_old, sse_new, config, samples: int) -> dict:
+    """The selection rule for held-out errors sse_old -> sse_new (nb, n). An effect is significant only if
+    (a) the total falls: the summed held-out SSE over all joints drops, RMS by >= min_total_drop, with t >= t_min for
+        the per-block log ratios of the totals;
+    (b) no joint gets worse: no joint has an RMS rise >= max_rise with t >= t_min for the per-block log ratios
+        log(sse_new_b / sse_old_b);
+    (c) some joint improves by significance(): RMS drop >= min_drop, t >= t_min, >= min_torque RMS explained.
+    Returns {drop, t, better, worse (n,), total_drop, total_t, significant}."""
+    drop, tstat, better = significance(sse_old, sse_new, config, samples)
+    worse = (-drop >= config.max_rise) & (-tstat >= config.t_min)
+    total_drop, total_t, _ = significance(sse_old.sum(axis=1, keepdims=True), sse_new.sum(axis=1, keepdims=True),
+                                          config, samples)
+    total_drop, total_t = float(total_drop[0]), float(total_t[0])
+    overall = total_drop >= config.min_total_drop and total_t >= config.t_min
+    return dict(drop=drop, t=tstat, better=better, worse=worse, total_drop=total_drop, total_t=total_t,
+                significant=bool(overall and better.any() and not worse.any()))
 
 
 class Selection:
@@ -150,7 +172,7 @@ class Selection:
     def try_effect(self, e):
         keys = [self._group(e, f) for f in (0, 1)]
         sse, params, _ = self.grams.heldout([self.keys[f] + [keys[f]] for f in (0, 1)])
-        drop, tstat, sig = significance(self.sse, sse, self.config, len(self.s))
+        v = verdict(self.sse, sse, self.config, len(self.s))
         n = self.s.n
         k = e.size(n) + (len(e.nonlinear[0]) * n if e.nonlinear else 0)
         explained = 1 - sse.sum(axis=0) / np.maximum(self.sse.sum(axis=0), 1e-300)
@@ -159,8 +181,11 @@ class Selection:
         nl = 0.5 * (self.nl[(e.name, 0)] + self.nl[(e.name, 1)]) if e.nonlinear else None
         return dict(effect=e.name, obj=e, keys=keys, sse=sse, fold_params=params, k=k,
                     explained=float(explained.mean()), explained_joints=explained,
-                    joints=[int(j) + 1 for j in np.flatnonzero(sig)], significant=bool(sig.any()),
-                    rms_after=np.sqrt(sse.sum(axis=0) / len(self.s)), drop=drop, t=tstat, params=e.describe(p, nl, n))
+                    joints=[int(j) + 1 for j in np.flatnonzero(v["better"])], significant=v["significant"],
+                    worse=[int(j) + 1 for j in np.flatnonzero(v["worse"])], rms_change=-v["drop"],
+                    total_change=-v["total_drop"], total_t=v["total_t"],
+                    rms_after=np.sqrt(sse.sum(axis=0) / len(self.s)), drop=v["drop"], t=v["t"],
+                    params=e.describe(p, nl, n))
 
     def accept(self, row):
         self.keys = [self.keys[f] + [row["keys"][f]] for f in (0, 1)]
@@ -168,7 +193,9 @@ class Selection:
 
 
 def rank(rows, config, samples: int):
-    """Best first by mean explained held-out variance; then parsimony among the significant ones."""
+    """Best first by mean explained held-out variance, except that the best significant candidate (verdict(): the
+    total falls, no joint worse, some joint better) goes first; parsimony among the significant ones: one with fewer
+    parameters replaces it unless it improves on that one significantly on some joint (significance())."""
     order = sorted(rows, key=lambda r: -r["explained"])
     sig = [r for r in order if r["significant"]]
     if sig:
