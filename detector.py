@@ -228,3 +228,11 @@ class LevelMap:
         self.level.append(np.array(level, dtype=float))
         if len(self.q) > self.size:
             del self.q[0], self.level[0]
+
+
+def payload_like(Y, d, mass, gate) -> bool:
+    """Whether a torque change d (n,) at a pose with payload regressor Y (n, 4) looks like a payload change: least
+    squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) >= -0.05 kg."""
+    dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
+    explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
+    return bool(explained >= gate and mass + dphi[0] >= -0.05)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import vi
-from detector import Detector, DetectorSettings, LevelMap, pseudo_force
+from detector import Detector, DetectorSettings, LevelMap, payload_like, pseudo_force
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 
@@ -132,11 +132,22 @@ class RME:
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
-        """Posterior of theta from a window q, tau_ext (T, n) (paper sign), T about 200 at 1 kHz.
+        """Posterior of theta from a window q, tau_ext (T, n) (paper sign), T about 200 at 1 kHz; or from lists of
+        windows [q_a, q_b], [tau_a, tau_b] of one payload (each (T_i, n); baseline and dq lists too, or None): one
+        posterior, their evidence combined (vi.combine), the prior mean the network's mean over them.
         baseline (n,): the tau_ext seen before the change, subtracted first (default: none).
         dq (T, n): joint velocities, needed only by a velocity-dependent correction (e.g. fitted friction)."""
-        n = self.robot.n
-        q_in, tau_in = q, tau_ext
+        if not isinstance(q, (list, tuple)):
+            return self._estimate(*self._window(q, tau_ext, baseline, dq))[0]
+        each = lambda v: [None] * len(q) if v is None else list(v) if isinstance(v, (list, tuple)) else []
+        if not (q and len(each(tau_ext)) == len(q) == len(each(baseline)) == len(each(dq))):
+            raise ValueError(f"q, tau_ext, baseline, dq: expected lists of {len(q)} windows (or None), found other")
+        windows = [self._window(*w) for w in zip(q, each(tau_ext), each(baseline), each(dq))]
+        return self._estimate([w[0] for w in windows], [w[1] for w in windows])[0]
+
+    def _window(self, q, tau_ext, baseline, dq):
+        """A checked (q, tau) (T, n) window, less the baseline and the correction."""
+        n, q_in, tau_in = self.robot.n, q, tau_ext
         q, qb = as_states("q", q, n)
         tau, tb = as_states("tau_ext", tau_ext, n)
         if not (qb and tb) or q.shape != tau.shape:
@@ -151,32 +162,29 @@ class RME:
             if dq.shape != q.shape:
                 raise ValueError(f"dq: expected shape {q.shape} like q, found {dq.shape}")
             tau = tau - self.correction.correction(q, dq)
-        return self._estimate(q, tau)[0]
+        return q, tau
 
     def _estimate(self, q, tau):
-        """Network prior and VI on a checked, referred and corrected window: (Estimate, Y = payload_regressor(q))."""
-        start = time.perf_counter()
-        _, R, J = self.robot.kinematics(q)                     # one forward-kinematics pass for the window
-        Y = self.robot.payload_regressor_from(J, R)
-        prior = self.net.predict_window(self.robot, q, tau, (R, J)) if self.net is not None else np.zeros(4)
-        if not np.all(np.isfinite(prior)):             # the network overflowed on absurd torques: no prior mean
-            prior = np.zeros(4)
-        post = vi.fit(Y, tau, prior, self.settings.vi, self.rng)
-        seconds = time.perf_counter() - start
-        return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), seconds, post.iterations,
-                        post.converged), Y
+        """Network prior and VI on checked, referred, corrected windows (or lists): (Estimate, Y or their list)."""
+        start, many = time.perf_counter(), isinstance(q, list)
+        Ys, priors = [], []
+        for qi, ti in zip(q if many else [q], tau if many else [tau]):
+            _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
+            Ys.append(self.robot.payload_regressor_from(J, R))
+            priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if self.net is not None else np.zeros(4))
+        prior = np.mean(priors, axis=0)
+        prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
+        post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng)
+        return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), time.perf_counter() - start,
+                        post.iterations, post.converged), (Ys if many else Ys[0])
 
     # --- streaming -----------------------------------------------------------------------------
     def update(self, q, dq, tau_ext) -> np.ndarray:
-        """Feed one 1 kHz sample (paper sign tau_ext); returns the compensation torque (n,) = -tau_mm(q, theta_hat).
-        Never NaN, never beyond the torque limits. A sample with a non-finite or absurd torque (beyond
-        settings.max_abs_torque) is dropped, counted in `dropped`, and the last compensation is returned.
-
-        Two paths lead to an estimate of the total payload: the event detector (Alg. 1, on the residual the current
-        estimate leaves) and, as a backstop, the consistency monitor: once the arm has been still for
-        monitor_window samples with a steady residual level, that level must stay within monitor_threshold of the
-        level it had when the estimate last explained tau_ext; if not, RME estimates again (kind "monitor"). A change
-        the detector missed, a wrong estimate or a stale one is so corrected within about monitor_window of rest."""
+        """Feed one 1 kHz sample (paper sign tau_ext); returns the compensation torque (n,) = -tau_mm(q, theta_hat),
+        never NaN nor beyond the torque limits. A non-finite or absurd sample (beyond max_abs_torque) is dropped and
+        counted in `dropped`. Estimates of the total payload come from the event detector (Alg. 1, on the residual
+        the estimate leaves) and, as a backstop, the consistency monitor: once the arm is calm with a steady residual
+        level, that level must stay within monitor_threshold of the level explained there, or RME estimates again."""
         n, keep, s = self.robot.n, self.settings.detector.window, self.settings
         q, _ = as_states("q", q, n, allow_window=False)
         dq, _ = as_states("dq", dq, n, allow_window=False)
@@ -319,7 +327,8 @@ class RME:
             self._levels.put(q, level)                                 # explained: follow the slow bias drift
             return
         reference = np.zeros(self.robot.n) if first else trusted
-        if not self._payload_like(level - reference, Q[-1], s.first_explained if first else s.min_explained):
+        if not payload_like(self.robot.payload_regressor(Q[-1]), level - reference, self._phi[0],
+                            s.first_explained if first else s.min_explained):
             if first:
                 self._levels.put(q, level)                             # no payload: the level is the bias
             else:
@@ -343,14 +352,6 @@ class RME:
         self._change(Q[-s.window:], TAU[-s.window:] - reference, self.theta, "monitor", then, accept,
                      level=None if first else (q, trusted))
         self._calm = 0
-
-    def _payload_like(self, d, q, gate):
-        """Whether a torque change d (n,) at pose q looks like a payload change: least squares d ~ Y(q) dphi explains
-        at least `gate` of it and leaves a total mass >= 0 (a cheap test before any estimate)."""
-        Y = self.robot.payload_regressor(q)
-        dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
-        explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
-        return explained >= gate and self._phi[0] + dphi[0] >= -0.05
 
     def _change(self, Qw, Tw, theta_before, kind, then, accept=None, level=None, asked=None):
         """Estimate on a referred window now, or as a job on the executor (judged once update finds it done)."""

@@ -21,7 +21,7 @@ class VISettings:
     betas: tuple = (0.9, 0.999)        # Adam moment decays, Kingma and Ba 2015 defaults
     adam_eps: float = 1e-8             # Kingma and Ba 2015
     clip_norm: float = 1.0             # global gradient-norm clip, authors' public code (paper_notes)
-    samples: int = 16                  # Monte Carlo samples per step; ours (authors' code: 1), see `python sim.py vi-bench`
+    samples: int = 16                  # Monte Carlo samples per step; ours (authors' code: 1; `python sim.py vi-bench`)
     antithetic: bool = True            # ours: samples in pairs (eps, -eps) (variance reduction; samples even)
     control_variate: bool = True       # ours: quadratic control variate for the sigma gradient (Miller et al. 2017)
     max_iterations: int = 2500         # authors' public code
@@ -105,9 +105,7 @@ class Posterior:
         return np.sqrt(np.diag(self.cov))
 
 
-# ------------------------------------------------------------------------------------------------------
-# Input checks
-# ------------------------------------------------------------------------------------------------------
+# --- input checks ------------------------------------------------------------------------------------
 def _array(name, x, shape_text, ndim):
     try:
         a = np.asarray(x, dtype=float)
@@ -190,6 +188,16 @@ def precompute(Y, tau, noise_std=None, settings=VISettings()):
     c = float(tw @ tw - wk @ tb**2)
     log_norm = 0.5 * float(np.sum(T * (LOG_2PI + np.log(s**2)) + np.log1p(T * d2 / s**2)))
     return Window(0.5 * (A + A.T), b, c, log_norm, s, T)
+
+
+def combine(windows):
+    """One Window from several windows of the same payload (e.g. at other poses): each with its own offset
+    (precompute), independent of the others, so their quadratic forms in phi add (evidence accumulates)."""
+    if len(windows) < 1:
+        raise ValueError("windows: expected at least one Window, found none")
+    total = lambda key: sum(getattr(w, key) for w in windows)
+    return Window(total("A"), total("b"), total("c"), total("log_norm"),
+                  np.sqrt(np.mean([w.noise_std ** 2 for w in windows], axis=0)), total("T"))
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -285,12 +293,10 @@ def map_estimate(window, mu_prior, sigma_prior, steps=20, tol=1e-3):
     return theta, H
 
 
-# ------------------------------------------------------------------------------------------------------
-# The solver
-# ------------------------------------------------------------------------------------------------------
+# --- the solver ---------------------------------------------------------------------------------------
 def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None):
     """q(theta) = N(mean, diag(std^2)) for the window Y (T, n, 4) = payload_regressor(q), tau (T, n) = tau_ext
-    (referred by the caller to the torque before the load change), prior N(mu_prior (4,), diag(sigma_prior^2)).
+    (referred to the torque before the change; or lists of windows: combine), prior N(mu_prior, diag(sigma_prior^2)).
 
     Adam minimises the Monte Carlo -ELBO over x = (z, w): mu = mu0 + C z, log sigma = log sigma0 + w, from the
     starting q (mu0, sigma0). warm_start: mu0 = MAP, sigma0 = the Laplace mean-field sigma (1 / sqrt(H_ii)),
@@ -309,7 +315,11 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None):
         raise ValueError(f"rng: expected a np.random.Generator, found {type(rng).__name__}")
     if not isinstance(settings, VISettings):
         raise ValueError(f"settings: expected a VISettings, found {type(settings).__name__}")
-    window = precompute(Y, tau, noise_std, settings)
+    many = isinstance(Y, (list, tuple))
+    if many != isinstance(tau, (list, tuple)) or (many and len(Y) != len(tau)):
+        raise ValueError(f"Y, tau: expected a window each or equal-length lists, found {type(Y)}, {type(tau)}")
+    window = combine([precompute(Yi, ti, noise_std, settings) for Yi, ti in zip(Y, tau)]) if many else \
+        precompute(Y, tau, noise_std, settings)
     sp = np.asarray(settings.sigma_prior, dtype=float)
     if settings.warm_start:
         mu0, H = map_estimate(window, mu_prior, sp, settings.map_steps)
