@@ -314,11 +314,11 @@ class RME:
         assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
         taken as explained."""
         s = self.settings
-        Q, TAU, Rs = self._buffer()
-        level, recent = Rs[-s.monitor_window:].mean(axis=0), Rs[-s.monitor_window // 3:].mean(axis=0)
+        last = (self._k - s.monitor_window + np.arange(s.monitor_window)) % len(self._r)   # no reorder, no correction
+        level, recent = self._r[last].mean(axis=0), self._r[last[-(s.monitor_window // 3):]].mean(axis=0)
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
-        q = Q[-s.monitor_window:].mean(axis=0)
+        q = self._q[last].mean(axis=0)
         trusted, muted, first = self._levels.at(q), self._muted.at(q), len(self._levels) == 0
         near = lambda a, b: b is not None and np.linalg.norm(a - b) <= s.monitor_threshold
         if near(level, muted):
@@ -326,14 +326,14 @@ class RME:
         if not first and (trusted is None or near(level, trusted)):
             self._levels.put(q, level)                                 # explained: follow the slow bias drift
             return
-        reference = np.zeros(self.robot.n) if first else trusted
-        if not payload_like(self.robot.payload_regressor(Q[-1]), level - reference, self._phi[0],
-                            s.first_explained if first else s.min_explained):
+        reference, gate = (np.zeros(self.robot.n), s.first_explained) if first else (trusted, s.min_explained)
+        if not payload_like(self.robot.payload_regressor(self._q[last[-1]]), level - reference, self._phi[0], gate):
             if first:
                 self._levels.put(q, level)                             # no payload: the level is the bias
             else:
                 self._muted.put(q, level)                              # e.g. a person holding the arm aside
             return
+        Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first:                                # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= s.first_explained
         else:                                    # the new estimate must make the level consistent again
