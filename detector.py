@@ -105,7 +105,7 @@ class Detector:
         self._lo, self._hi, self._len = lo, hi, (hi - lo).astype(float)[:, None]
         self.count, self._quiet = 0, 0
         self.reference_torque = np.zeros(n)   # (n,) tau_ref at the last detection (the torque before the change)
-        self.status = None                    # dict of the last evaluation: rapid, stabilisation, force_change, fired
+        self._status, self._evaluated = None, 0  # the last evaluation (see status) and its sample count
 
     def reset(self):
         """Forget the history (the next detection needs a full window again)."""
@@ -115,6 +115,7 @@ class Detector:
         """Re-express the buffered samples as if d_tau (n,) [Nm] and d_force (3,) [N] had been subtracted from each:
         after the compensation changes by d_tau, the detector keeps watching the residual without a blind window."""
         N, n, k = self.settings.window, self.n, self.count
+        _ = self.status                                          # the last evaluation, on the samples as they were
         d_tau, d_force = np.asarray(d_tau, dtype=float), np.asarray(d_force, dtype=float)
         have = min(k, N)
         rows = (k - have + np.arange(have)) % N                  # the buffered samples, oldest first
@@ -146,9 +147,10 @@ class Detector:
         force = np.asarray(force, dtype=float)
         if force.shape != (3,) or not np.all(np.isfinite(force)) or np.abs(force).max() > 1e3 * MAX_TORQUE:
             raise ValueError(f"force: expected finite values of shape (3,), found {force.shape} {force}")
-        return self._push(tau, force)
+        return self.push(tau, force)
 
-    def _push(self, tau, force):
+    def push(self, tau, force):
+        """update() without the input checks, for a caller that checked tau (n,) and force (3,) itself."""
         N = self.settings.window
         k = self.count = self.count + 1
         x = self._raw[(k - 1) % N]
@@ -161,27 +163,45 @@ class Detector:
             return False
         if k < N:
             return False
+        self._status, self._evaluated = None, k
         fired = self._evaluate(k)
         if fired:
             self._quiet = self.settings.refractory
         return fired
 
-    def _evaluate(self, k):
-        """Algorithm 1 on the window of samples k - N + 1 .. k (its sample i is at raw[(k - N + i - 1) % N])."""
+    @property
+    def status(self):
+        """dict of the last evaluation: rapid, settled, stabilisation, force_change, fired (None before the first);
+        computed on demand (the 1 kHz path stops at the activation test when nothing changed)."""
+        if self._status is None and self._evaluated:
+            self._status = self._evaluate(self._evaluated, full=True)
+        return self._status
+
+    def _evaluate(self, k, full=False):
+        """Algorithm 1 on the window of samples k - N + 1 .. k (its sample i is at raw[(k - N + i - 1) % N]):
+        whether it fires (full: the status dict instead)."""
         s, N, n = self.settings, self.settings.window, self.n
         P = self._prefix
-        means = (P[(k - N + self._hi) % (N + 1)] - P[(k - N + self._lo) % (N + 1)]) / self._len   # (W, D)
-        ref, settled, checks, end, frc = means[0], means[1], means[2:-2], means[-2], means[-1]
         T = slice(1, 1 + n)                                                   # the torque columns
         if s.algorithm == "as_printed":
             first, last = self._raw[k % N, 0], self._raw[(k - 1) % N, 0]
-            rapid, drift, dF = abs(last - first), np.abs(checks[:, 0] - end[0]), frc[1 + n:]
-            settled_ok, tau_ref = True, np.zeros(n)
+            rapid = abs(last - first)
         else:
+            ref, end = ((P[(k - N + self._hi[i]) % (N + 1)] - P[(k - N + self._lo[i]) % (N + 1)]) / self._len[i]
+                        for i in (0, -2))
             tau_ref = ref[T]
             # mean over a window of ||tau - tau_ref||^2 = mean ||tau||^2 - 2 tau_ref . mean tau + ||tau_ref||^2
             s_end, s_ref = (w[0] - 2.0 * w[T] @ tau_ref + tau_ref @ tau_ref for w in (end, ref))
             rapid = abs(s_end - s_ref)
+        if not full and rapid <= s.activation_threshold:
+            return False                                   # the common case at 1 kHz: nothing changed
+        means = (P[(k - N + self._hi) % (N + 1)] - P[(k - N + self._lo) % (N + 1)]) / self._len   # (W, D)
+        ref, settled, checks, end, frc = means[0], means[1], means[2:-2], means[-2], means[-1]
+        if s.algorithm == "as_printed":
+            drift, dF = np.abs(checks[:, 0] - end[0]), frc[1 + n:]
+            settled_ok, tau_ref = True, np.zeros(n)
+        else:
+            tau_ref = ref[T]
             d = checks[:, T] - end[T]
             size = end[T] - tau_ref
             drift = np.sqrt(np.einsum("ij,ij->i", d, d)) - s.stabilisation_relative * np.sqrt(size @ size)
@@ -192,7 +212,10 @@ class Detector:
         side = abs(dF[0]) < s.side_force_limit and abs(dF[1]) < s.side_force_limit
         fired = bool(rapid > s.activation_threshold and settled_ok and drift.max() < s.stabilisation_threshold
                      and vertical and side)
-        self.status = dict(rapid=rapid, settled=settled_ok, stabilisation=drift, force_change=dF, fired=fired)
+        status = dict(rapid=rapid, settled=settled_ok, stabilisation=drift, force_change=dF, fired=fired)
+        if full:
+            return status
+        self._status = status
         if fired:
             self.reference_torque = tau_ref.copy()
         return fired
@@ -230,9 +253,49 @@ class LevelMap:
             del self.q[0], self.level[0]
 
 
+class Levels:
+    """The residual levels a streaming estimator keeps by pose (LevelMaps within `tolerance` rad): `explained`, where
+    the compensated estimate explained tau_ext; `muted`, steady levels found not to be a payload; `rejected`, the
+    (q, level) before the last change that was no payload. `threshold` [Nm]: levels closer than this are the same."""
+
+    def __init__(self, tolerance: float, threshold: float):
+        self.tolerance, self.threshold = tolerance, threshold
+        self.explained, self.muted, self.rejected = LevelMap(tolerance), LevelMap(tolerance), None
+
+    def undone(self, q, level) -> bool:
+        """Whether the residual `level` at pose q is back within `threshold` of the level before the last rejected
+        change, at that pose: the end of whatever caused it (a person releasing the arm). Forgets that change then."""
+        if self.rejected is None:
+            return False
+        q0, before = self.rejected
+        back = np.abs(q - q0).max() <= self.tolerance and np.linalg.norm(level - before) <= self.threshold
+        if back:
+            self.rejected = None
+        return back
+
+    def bias(self, R_ref, q_ref):
+        """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
+        samples R_ref (T, n) taken at pose q_ref, unless the estimate did not explain them (a push, a change it
+        missed) while a level it did explain is known at that pose: then that level."""
+        local, trusted, muted = R_ref.mean(axis=0), self.explained.at(q_ref), self.muted.at(q_ref)
+        if trusted is None or np.linalg.norm(local - trusted) <= self.threshold:
+            return local
+        if muted is not None and np.linalg.norm(local - muted) <= self.threshold:
+            return local                     # a state already judged not to be a payload (a drifted bias)
+        return trusted
+
+
 def payload_like(Y, d, mass, gate) -> bool:
     """Whether a torque change d (n,) at a pose with payload regressor Y (n, 4) looks like a payload change: least
     squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) >= -0.05 kg."""
     dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
     explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
     return bool(explained >= gate and mass + dphi[0] >= -0.05)
+
+
+def safe_theta(new, old, max_mass):
+    """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the current one."""
+    new = np.asarray(new, dtype=float)
+    if new.shape != (4,) or not np.all(np.isfinite(new)):
+        return old
+    return np.array([min(max(new[0], 0.0), max_mass), *np.clip(new[1:], -1.0, 1.0)])

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import vi
-from detector import Detector, DetectorSettings, LevelMap, payload_like, pseudo_force
+from detector import Detector, DetectorSettings, LevelMap, Levels, payload_like, pseudo_force, safe_theta
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 
@@ -49,6 +49,8 @@ class RMESettings:
                                    #   still holds (the realistic sensor's bias varies over radians; a 3 kg load
                                    #   or a 60 N push moves the compliant arm by about 0.1-0.3 rad)
     max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
+    accumulate: bool = True        # ours: at rest at a new orientation, the same payload, combine the windows seen
+    accumulate_angle: float = 0.2  # rad: gravity turned this far in the ee frame since every window kept (rz shows)
     vi: vi.VISettings = field(default_factory=vi.VISettings)
     detector: DetectorSettings = field(default_factory=DetectorSettings)
 
@@ -66,7 +68,8 @@ class RMESettings:
                   ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
                    f"{self.window}..{keep} samples"),
                   ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
-                  ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s")]
+                  ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s"),
+                  ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)")]
         for name, value, ok, want in checks:
             if not ok or (isinstance(value, float) and np.isnan(value)):
                 raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
@@ -111,10 +114,11 @@ class RME:
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
         self._r = np.zeros((keep, n))                  # ring of residuals tau_ext - tau_mm(q, theta) (- correction)
         self._k = 0                                    # samples seen
+        self._fq, self._P = np.full(n, np.inf), None   # the pose (1e-3 rad) of the pseudo-force map P (3, n)
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
-        self._levels = LevelMap(settings.pose_tolerance)   # residual levels where the estimate explained tau_ext
-        self._muted = LevelMap(settings.pose_tolerance)    # steady levels the monitor found not to be a payload
-        self._rejected = None                          # (q, level) before the last detection that was no payload
+        self.changes_not_payload = 0                   # detections no payload explains (not estimated)
+        self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
+        self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta = np.zeros(4)                       # the estimate being compensated
         self._phi = np.zeros(4)                        # its phi = (m, m r), kept with it for the 1 kHz loop
@@ -204,8 +208,10 @@ class RME:
         Y = self.robot.payload_regressor_from(J, R)
         tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
-        self._r[i] = r
-        if self.detector.update(r, pseudo_force(J, r, s.detector.lam, check=False)) and self._k >= keep:
+        self._r[i] = r if self.correction is None or np.isfinite(r).all() else tau - tau_mm
+        if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
+            self._fq, self._P = q, np.linalg.solve(J @ J.T + s.detector.lam * np.eye(6), J)[:3]
+        if self.detector.push(self._r[i], self._P @ self._r[i]) and self._k >= keep:
             if self._job is None:
                 self._on_detection()
             else:                                      # formed once the job in flight is done (the newest wins)
@@ -236,11 +242,10 @@ class RME:
     def _apply(self, e, level, Y, J):
         """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
         (q, residual level) the new compensation should leave at pose q (its reference), or None."""
-        self._muted = LevelMap(self.settings.pose_tolerance)          # judged under the compensation before
-        self._rejected = None
+        self._lv.muted, self._lv.rejected = LevelMap(self.settings.pose_tolerance), None   # judged before it
         if level is not None:
-            self._levels.put(*level)
-        theta = _safe_theta(e.mean, self.theta, self.settings.max_mass)
+            self._lv.explained.put(*level)
+        theta = safe_theta(e.mean, self.theta, self.settings.max_mass)
         d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
         self.theta, self._phi = theta, vi.phi_of(theta)
         self.detector.shift(d, pseudo_force(J, d, self.settings.detector.lam, check=False))
@@ -257,48 +262,28 @@ class RME:
             TAU = TAU - self.correction.correction(Q, self._dq[order])
         return Q, TAU, self._r[order]
 
-    def _undone(self, q, level) -> bool:
-        """Whether the residual `level` at pose q is back within monitor_threshold of the level before the last
-        rejected detection, at that pose: the end of whatever caused it (a person releasing the arm)."""
-        if self._rejected is None:
-            return False
-        q0, before = self._rejected
-        back = np.abs(q - q0).max() <= self.settings.pose_tolerance and \
-            np.linalg.norm(level - before) <= self.settings.monitor_threshold
-        if back:
-            self._rejected = None
-        return back
-
-    def _bias(self, R_ref, q_ref):
-        """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
-        samples R_ref (taken at pose q_ref), unless the estimate did not explain them (a push, a change it missed)
-        while a level it did explain is known at that pose: then that level."""
-        thr = self.settings.monitor_threshold
-        local, trusted, muted = R_ref.mean(axis=0), self._levels.at(q_ref), self._muted.at(q_ref)
-        if trusted is None or np.linalg.norm(local - trusted) <= thr:
-            return local
-        if muted is not None and np.linalg.norm(local - muted) <= thr:
-            return local                     # a state already judged not to be a payload (a drifted bias)
-        return trusted
-
     def _on_detection(self, asked=None):
         """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
         change during a pending estimate at rest supersedes it. asked: the sample of a detection made during a job."""
         s = self.settings
         Q, TAU, Rs = self._buffer()
         q_ref = Q[:s.reference].mean(axis=0)
-        if self._undone(Q[-1], Rs[-s.window:].mean(axis=0)):
+        if self._lv.undone(Q[-1], Rs[-s.window:].mean(axis=0)):
             return                         # back to the level before a change that was no payload: its release
         pending = self._refine                   # within refine_within of an accepted change: refer to before it
-        bias = pending["bias"] if pending is not None else self._bias(Rs[:s.reference], q_ref)
+        bias = pending["bias"] if pending is not None else self._lv.bias(Rs[:s.reference], q_ref)
         before = self.theta.copy()
+        if not payload_like(self.robot.payload_regressor(Q[-1]), Rs[-s.window:].mean(axis=0) - bias, before[0],
+                            s.min_explained):      # a push, a bias step: no point mass under gravity explains it
+            self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
+            return
         def then(e):
-            self._rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
+            self._lv.rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
                 self._refine = dict(bias=bias, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Q[-s.window:], TAU[-s.window:] - bias, before, "detection", then, asked=asked)  # levels: at rest
+        self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked)  # levels: at rest
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -306,7 +291,7 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:] - r["bias"], r["before"], "at rest", lambda e: None)
+        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None)
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -319,82 +304,93 @@ class RME:
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
-        trusted, muted, first = self._levels.at(q), self._muted.at(q), len(self._levels) == 0
+        trusted, muted, first = self._lv.explained.at(q), self._lv.muted.at(q), len(self._lv.explained) == 0
         near = lambda a, b: b is not None and np.linalg.norm(a - b) <= s.monitor_threshold
         if near(level, muted):
             return                                                     # judged before: not a payload
         if not first and (trusted is None or near(level, trusted)):
-            self._levels.put(q, level)                                 # explained: follow the slow bias drift
+            self._lv.explained.put(q, level)                                 # explained: follow the slow bias drift
+            if trusted is None and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
+                Q, TAU, _ = self._buffer()       # the same payload seen from a new side: combine the evidence
+                same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
+                Yq, phi = self.robot.payload_regressor(q), self._phi.copy()     # the level it leaves here:
+                then = lambda e: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
+                    e.mean, self.theta, s.max_mass)) - phi))
+                self._change(Q[-s.window:], TAU[-s.window:], self._evidence[0][2], self.theta, "accumulated", then,
+                             same, evidence=self._evidence)     # referred like the first window kept
+                self._calm = 0
             return
         reference, gate = (np.zeros(self.robot.n), s.first_explained) if first else (trusted, s.min_explained)
         if not payload_like(self.robot.payload_regressor(self._q[last[-1]]), level - reference, self._phi[0], gate):
             if first:
-                self._levels.put(q, level)                             # no payload: the level is the bias
+                self._lv.explained.put(q, level)                             # no payload: the level is the bias
             else:
-                self._muted.put(q, level)                              # e.g. a person holding the arm aside
+                self._lv.muted.put(q, level)                              # e.g. a person holding the arm aside
             return
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first:                                # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= s.first_explained
         else:                                    # the new estimate must make the level consistent again
             gap = np.linalg.norm(level - trusted)
-            accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(_safe_theta(
+            accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(safe_theta(
                 e.mean, self.theta, s.max_mass))).mean(axis=0)) <= min(s.monitor_threshold, 0.5 * gap)
         def then(e):
             if e.accepted and first:                                   # what the payload leaves is the bias
                 Y = self.robot.payload_regressor(Q[-s.window:])
                 self._pending[2] = (q, (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0))
             elif first:
-                self._levels.put(q, level)                             # no payload: the level is the bias
+                self._lv.explained.put(q, level)                             # no payload: the level is the bias
                 self.history.pop()                                     # (establishing it is not an estimate)
             elif not e.accepted:
-                self._muted.put(q, level)
-        self._change(Q[-s.window:], TAU[-s.window:] - reference, self.theta, "monitor", then, accept,
+                self._lv.muted.put(q, level)
+        self._change(Q[-s.window:], TAU[-s.window:], reference, self.theta, "monitor", then, accept,
                      level=None if first else (q, trusted))
         self._calm = 0
 
-    def _change(self, Qw, Tw, theta_before, kind, then, accept=None, level=None, asked=None):
-        """Estimate on a referred window now, or as a job on the executor (judged once update finds it done)."""
-        request = (self._k if asked is None else asked, Tw, theta_before, kind, then, accept, level)
-        if self.executor is None:
-            self._judge(*request, *self._estimate(Qw, Tw))
-        else:
-            self._job = (self.executor.submit(self._estimate, Qw.copy(), Tw.copy()), request)
+    def _turned(self, q) -> bool:
+        """Whether gravity, seen from the ee at pose q, has turned by accumulate_angle from every window kept."""
+        g = lambda x: self.robot.ee_pose(x)[1][2]             # the world z axis in the ee frame
+        return all(np.arccos(np.clip(g(q) @ g(Q.mean(axis=0)), -1, 1)) > self.settings.accumulate_angle
+                   for Q, *_ in self._evidence)
 
-    def _judge(self, k, Tw, theta_before, kind, then, accept, level, e, Y):
+    def _change(self, Qw, TAUw, bias, theta_before, kind, then, accept=None, level=None, asked=None, evidence=()):
+        """Estimate on the window Qw, TAUw - bias (referred to the torque before a change; with the windows of
+        `evidence`, combined) now, or as a job on the executor (judged once update finds it done)."""
+        Tw = TAUw - bias
+        request = (self._k if asked is None else asked, Qw.copy(), Tw, bias, theta_before, kind, then, accept, level)
+        Qs, Ts = [x[0] for x in evidence] + [Qw], [x[1] for x in evidence] + [Tw]
+        args = (Qs, Ts) if evidence else (Qw.copy(), Tw.copy())
+        if self.executor is None:
+            self._judge(*request, *self._estimate(*args))
+        else:
+            self._job = (self.executor.submit(self._estimate, *args), request)
+
+    def _judge(self, k, Qw, Tw, bias, theta_before, kind, then, accept, level, e, Y):
         """Judge the estimate e of the window requested at sample k against the payload before the change, schedule
         it if accepted (accept(e, Tw, Y), default: explained share >= min_explained) and hand it to then(e);
         level: the residual level it will leave."""
-        s = self.settings
+        s, Y = self.settings, Y[-1] if isinstance(Y, list) else Y          # the newest window's regressor
         e.t, e.kind = k / s.rate, kind
         before = max(np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2), 1e-12)   # what the estimate before leaves
         e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
-        plausible = bool(np.all(np.abs(e.mean[1:]) <= s.max_com))
+        plausible = bool(np.all(np.abs(e.mean[1:]) <= s.max_com) and e.mean[0] <= 1.2 * s.max_mass)
         e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Y))
         if not plausible:
-            e.reason = f"its CoM {np.round(e.mean[1:], 3).tolist()} m is beyond max_com = {s.max_com} m"
+            e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "
+                        f"arm carries (max_mass {s.max_mass} kg, max_com {s.max_com} m)")
         elif not e.accepted:
             e.reason = (f"explains only {100 * e.explained:.0f} % of the change" if accept is None else
                         "it does not make the compensation consistent with tau_ext")
         self.history.append(e)
         if e.accepted:                     # with an executor, on the sample the job is found done
+            self._evidence = (self._evidence + [(Qw, Tw, bias)])[-4:] if kind == "accumulated" else [(Qw, Tw, bias)]
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
             self._pending = [k + delay if self.executor is None else self._k, e, level]
         then(e)
 
 
-def _safe_theta(new, old, max_mass):
-    """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the current one."""
-    new = np.asarray(new, dtype=float)
-    if new.shape != (4,) or not np.all(np.isfinite(new)):
-        return old
-    return np.array([min(max(new[0], 0.0), max_mass), *np.clip(new[1:], -1.0, 1.0)])
-
-
 if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module
-    if len(sys.argv) < 2 or sys.argv[1] != "diagnose":
-        print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
-              "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)")
-        sys.exit(2)
     from diagnosis.diagnose import main
-    sys.exit(main(sys.argv[2:], prog="rme.py diagnose"))
+    sys.exit(main(sys.argv[2:], prog="rme.py diagnose") if sys.argv[1:2] == ["diagnose"] else print(
+        "usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n(the estimator itself is a "
+        "library: from rme import RME; demos: python sim.py --help)") or 2)

@@ -101,7 +101,7 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
     import vi
     est = RME(weights=None, settings=RMESettings(asynchronous=False, min_explained=-np.inf, max_com=10.0,
                                                  monitor=False))     # no plausibility gates: the detector only
-    outputs = iter([np.full(4, np.nan), np.array([50.0, 5.0, -5.0, 5.0])])
+    outputs = iter([np.full(4, np.nan), np.array([3.5, 5.0, -5.0, 5.0])])   # the gate allows 1.2 max_mass
 
     def broken_fit(*args, **kwargs):
         post = vi_fit(*args, **kwargs)
@@ -121,7 +121,7 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
     run(plant, ctrl, 2.3, Checked(), [PayloadChange(0.6, 1.0, (0.0, 0.0, 0.1)), PayloadChange(1.5, 2.0, (0.0, 0.0, 0.1))],
         q0=Q_READY, tau_ext_to_controller=False)
     assert len(est.history) == 2 and np.isnan(est.history[0].mean).all()
-    np.testing.assert_array_equal(est.theta, [3.0, 1.0, -1.0, 1.0])     # 50 kg at 5 m, clipped to the limits
+    np.testing.assert_array_equal(est.theta, [3.0, 1.0, -1.0, 1.0])     # 3.5 kg at 5 m, clipped to the limits
 
 
 def test_fitted_friction_correction_removes_the_friction_bias_of_rme():

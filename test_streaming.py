@@ -55,6 +55,8 @@ def test_release_of_an_upward_push_is_not_applied(force):
     applied = [e for e in est.history if e.accepted and e.mean[0] > 0.05]
     assert not applied, [(e.t, e.kind, e.mean.round(3).tolist()) for e in applied]
     assert np.abs(rec.theta_hat[:, 0]).max() <= 0.05
+    # a lift needs a negative mass: the push is not even estimated, nor is its release
+    assert not est.history, [(e.t, e.kind, e.reason) for e in est.history]
 
 
 def test_a_change_the_detector_misses_is_healed_once_the_arm_rests():
