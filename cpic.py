@@ -7,14 +7,20 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import lapack
 
 from dynamics import Robot, as_states
-from qp import QPInfo, dual_active_set, solve_qp   # noqa: F401  (re-exported: cpic.solve_qp)
+from qp import QPInfo, dual_active_set_from_inverse, solve_qp
+
+__all__ = ["Attractor", "LimitCycle", "CPIC", "CPICConfig", "StepInfo", "JointHold", "damping_matrix",
+           "impedance_wrench", "rotation_log", "storage", "solve_qp", "QPInfo"]   # solve_qp, QPInfo: from qp.py
 
 
 def _checked(name, v, shape=None, low=None, strict=True):
     """v as a float (shape None) or a float array of that shape, finite and > low (>= low if not strict); else
     ValueError naming it, with what was found and what was expected."""
+    if low is None and type(v) is np.ndarray and v.shape == shape and v.dtype == float and math.isfinite(v.sum()):
+        return v                                      # fast path for the 1 kHz loop (inf - inf sums to NaN)
     what = "a finite number" if shape is None else f"finite values of shape {shape}"
     what += "" if low is None else f" {'>' if strict else '>='} {low:g}"
     try:
@@ -69,8 +75,7 @@ class Attractor:
     def __post_init__(self):
         object.__setattr__(self, "p_star", _checked("p_star", self.p_star, (3,)))
         object.__setattr__(self, "R_star", _checked_rotation("R_star", self.R_star))
-        _checked("gain_pos", self.gain_pos, low=0.0)
-        _checked("gain_rot", self.gain_rot, low=0.0)
+        _checked("gain_pos", self.gain_pos, low=0.0), _checked("gain_rot", self.gain_rot, low=0.0)
 
     def __call__(self, p, R):
         """-> f (6,), V = (V_pos, V_rot)."""
@@ -102,8 +107,7 @@ class LimitCycle:
         u = e[1:]                                     # (y, z) relative to the centre
         rho = np.sqrt(u @ u)
         radial = u / rho if rho > 1e-12 else np.zeros(2)
-        omega = 2.0 * np.pi / self.period
-        v_yz = -self.gain_pos * (rho - self.radius) * radial + omega * np.array([-u[1], u[0]])
+        v_yz = -self.gain_pos * (rho - self.radius) * radial + (2.0 * np.pi / self.period) * np.array([-u[1], u[0]])
         f_w, V_rot = _orientation_terms(R, self.R_star, self.gain_rot)
         V_pos = 0.5 * self.gain_pos * ((rho - self.radius) ** 2 + e[0] ** 2)
         return np.concatenate([[-self.gain_pos * e[0]], v_yz, f_w]), (V_pos, V_rot)
@@ -128,18 +132,19 @@ def damping_matrix(f, eigenvalues):
 def impedance_wrench(G_x, xdot, f, damping_pos, damping_rot):
     """F_c = G_x - D(x)(xdot - f(x)) (6,), D = blockdiag(D_pos(f_v), D_rot(f_w)); G_x, xdot, f (6,)."""
     e = xdot - f
-    return G_x - np.concatenate([_damp(f[:3], damping_pos, e[:3]), _damp(f[3:], damping_rot, e[3:])])
+    if damping_pos[1] != damping_pos[2] or damping_rot[1] != damping_rot[2]:
+        return G_x - np.concatenate([damping_matrix(f[:3], damping_pos) @ e[:3],
+                                     damping_matrix(f[3:], damping_rot) @ e[3:]])
+    fl, el = f.tolist(), e.tolist()                   # six numbers: plain floats beat array calls here
+    return G_x - np.array(_damp(fl[:3], damping_pos, el[:3]) + _damp(fl[3:], damping_rot, el[3:]))
 
 
 def _damp(f, eigenvalues, e):
-    """D(f) e (3,); with lambda_2 = lambda_3, Q Lambda Q^T = lambda_2 I + (lambda_1 - lambda_2) e1 e1^T exactly."""
-    l1, l2, l3 = eigenvalues
-    if l2 != l3:
-        return damping_matrix(f, eigenvalues) @ e
-    ff = float(f @ f)
-    if ff <= 1e-24:                                   # f = 0: e1 = world x axis, as in damping_matrix
-        return l2 * e + np.array([(l1 - l2) * e[0], 0.0, 0.0])
-    return l2 * e + ((l1 - l2) * float(f @ e) / ff) * f
+    """D(f) e (list of 3) for lambda_2 = lambda_3: Q Lambda Q^T = lambda_2 I + (lambda_1 - lambda_2) e1 e1^T exactly
+    (f = 0: e1 = the world x axis, as in damping_matrix)."""
+    l1, l2, ff = eigenvalues[0], eigenvalues[1], f[0] * f[0] + f[1] * f[1] + f[2] * f[2]
+    k, f = ((l1 - l2) * (f[0] * e[0] + f[1] * e[1] + f[2] * e[2]) / ff, f) if ff > 1e-24 else (l1 - l2, (e[0], 0, 0))
+    return [l2 * e[0] + k * f[0], l2 * e[1] + k * f[1], l2 * e[2] + k * f[2]]
 
 
 # --- the CPIC torque QP (Eq. 8, Appendix D) with the RME compensation hook (Eq. 5, Appendix B) -----------------
@@ -168,12 +173,10 @@ class CPICConfig:
     max_iterations: int = 100         # active-set changes per QP
 
     def __post_init__(self):
-        for name in ("damping_pos", "damping_rot"):
-            _checked(name, getattr(self, name), (3,), low=0.0)
-        for name in ("k1", "k2", "null_weight"):
-            _checked(name, getattr(self, name), low=0.0)
-        for name in ("null_damping", "null_stiffness"):
-            _checked(name, getattr(self, name), low=0.0, strict=False)
+        for name, shape, strict in (("damping_pos", (3,), 1), ("damping_rot", (3,), 1), ("k1", None, 1),
+                                    ("k2", None, 1), ("null_weight", None, 1), ("null_damping", None, 0),
+                                    ("null_stiffness", None, 0)):
+            _checked(name, getattr(self, name), shape, low=0.0, strict=strict)
         for name, low, strict in (("tau_max", 0.0, True), ("fallback_damping", 0.0, False), ("q_min", None, True),
                                   ("q_max", None, True), ("q_rest", None, True)):
             v = getattr(self, name)
@@ -223,10 +226,8 @@ class CPIC:
     """
 
     def __init__(self, robot, policy, config: CPICConfig | None = None):
-        self.robot = robot
-        self.config = c = CPICConfig() if config is None else config
-        n = robot.n
-        rng = robot.model.jnt_range
+        self.robot, self.config = robot, CPICConfig() if config is None else config
+        c, n, rng = self.config, robot.n, robot.model.jnt_range
         self.q_min = np.asarray(rng[:, 0] if c.q_min is None else c.q_min, dtype=float)
         self.q_max = np.asarray(rng[:, 1] if c.q_max is None else c.q_max, dtype=float)
         self.tau_max = np.asarray(c.tau_max, dtype=float)
@@ -238,9 +239,8 @@ class CPIC:
         if np.any(self.q_min >= self.q_max) or np.any(self.tau_max <= 0):
             raise ValueError(f"config: expected q_min < q_max and tau_max > 0, found {self.q_min}, "
                              f"{self.q_max}, {self.tau_max}")
-        self._I = np.eye(n)
-        self._A = np.zeros((4 * n, n))                # constraint rows; the torque rows never change
-        self._A[2 * n:3 * n], self._A[3 * n:] = self._I, -self._I
+        self._I, self._zeros, self._tau_min, self._X = np.eye(n), np.zeros(n), -self.tau_max, np.zeros((3, n))
+        self._A = np.vstack([np.zeros((2 * n, n)), self._I, -self._I])   # constraint rows; the torque rows: fixed
         self.policy = policy                          # checks it and resets
 
     @property
@@ -263,16 +263,13 @@ class CPIC:
     def reset(self):
         """Start a new motion from the next step: forget the warm start (previous active set) and re-take the
         posture spring's rest pose (config.q_rest if given, else the q of the next step)."""
-        self._active = []
-        q_rest = self.config.q_rest
+        self._active, q_rest = [], self.config.q_rest
         self._rest = None if q_rest is None else (np.asarray(q_rest, dtype=float), _null_projector(self.robot, q_rest))
 
     def posture_potential(self, q):
         """P = k_p/2 (q - q_rest)^T N_rest (q - q_rest) [J] at q (n,); 0 while no rest pose is taken."""
-        if self._rest is None:
-            return 0.0
-        e = np.asarray(q, dtype=float) - self._rest[0]
-        return 0.5 * self.config.null_stiffness * float(e @ self._rest[1] @ e)
+        e = None if self._rest is None else np.asarray(q, dtype=float) - self._rest[0]
+        return 0.0 if e is None else 0.5 * self.config.null_stiffness * float(e @ self._rest[1] @ e)
 
     def step(self, q, dq, compensation=None, tau_ext=None):
         """q, dq (n,) measured; compensation (n,) added after the QP (None = 0). Returns (tau (n,), StepInfo).
@@ -282,80 +279,87 @@ class CPIC:
         Given, the E-CBF predicts ddq = M^-1 (tau + comp - C dq - G + tau_ext) as in Eq. 8's equality, so a
         push is resisted at the limit (without it a push d [rad/s^2] can overshoot a limit by about d / k1).
         """
-        G, dq, comp, f, V, F_c, tau_free, Hinv, g, b, why = self._terms(q, dq, compensation, tau_ext)
+        G, dq, comp, f, V, F_c, tau_free, terms, why = self._terms(q, dq, compensation, tau_ext)
         if why:
             return self._fallback(G, dq, comp, f, V, F_c, f"fallback: {why}")
-        if not self._active and (self._A @ tau_free - b).min() >= -1e-9:   # QP optimum = unconstrained one
+        if not self._active and self._satisfies(tau_free, comp, *terms[4:]):   # QP optimum = unconstrained one
             tau_qp, status, it, active = tau_free, "optimal", 0, []
         else:
-            try:
-                B = np.linalg.cholesky(Hinv).T        # B^T B = H^-1
-            except np.linalg.LinAlgError:
-                return self._fallback(G, dq, comp, f, V, F_c, "fallback: H not positive definite")
-            tau_qp, status, it, active, _ = dual_active_set(B, g, self._A, b, self._active,
-                                                            self.config.max_iterations)
-        if status != "optimal" or not np.isfinite(tau_qp).all():
+            Hinv, g = self._objective(*terms[:4])    # NaN or inf: the QP's status is "degenerate"
+            tau_qp, status, it, active, _ = dual_active_set_from_inverse(
+                Hinv, g, self._A, self._constraint_bounds(comp, *terms[4:]), self._active, self.config.max_iterations)
+        if status != "optimal" or not math.isfinite(tau_qp @ tau_qp):
             self._active = []
             return self._fallback(G, dq, comp, f, V, F_c, f"fallback: QP {status}")
         self._active = active
-        tau = np.minimum(np.maximum(tau_qp + comp, -self.tau_max), self.tau_max)
+        tau = np.minimum(np.maximum(tau_qp + comp, self._tau_min), self.tau_max)
         return tau, StepInfo(status, it, np.array(active, dtype=int), False, f, V, F_c, tau_qp)
 
     def qp(self, q, dq, compensation=None, tau_ext=None):
         """The QP that step() solves at this state, for inspection: (H (n, n), g (n,), A (4n, n), b (4n,),
         warm-start active set), ready for solve_qp(H, g, A, b, active)."""
-        out = self._terms(q, dq, compensation, tau_ext)
-        if out[-1]:
-            raise ValueError(f"q, dq: no QP at this state ({out[-1]})")
-        H = np.linalg.inv(out[-4])
-        return 0.5 * (H + H.T), out[-3], self._A.copy(), out[-2], np.array(self._active, dtype=int)
+        _, _, comp, _, _, _, _, terms, why = self._terms(q, dq, compensation, tau_ext)
+        if why:
+            raise ValueError(f"q, dq: no QP at this state ({why})")
+        (Hinv, g), b, active = self._objective(*terms[:4]), self._constraint_bounds(comp, *terms[4:]), self._active
+        return 0.5 * (np.linalg.inv(Hinv) + np.linalg.inv(Hinv).T), g, self._A.copy(), b, np.array(active, dtype=int)
 
     def _terms(self, q, dq, compensation, tau_ext):
-        """Model terms, policy, F_c, the unconstrained optimum tau_free = J^T F_t + N tau_0 and the QP data
-        (H^-1, g, b), and why = "" or the reason for the safe torque (then the QP data are None)."""
+        """Model terms, policy, F_c, tau_free = J^T F_t + N tau_0 (N v = v - J^T (J^+T v): N is never formed), the QP's
+        terms (J, J^+T, F_t, N tau_0; q, k2 dq, M^-1, M^-1 bias) and why = "" or the reason for the safe torque."""
         robot, c, n = self.robot, self.config, self.robot.n
         J, M, bias, G, p, R = robot.control_terms(q, dq)          # one kinematics pass; validates q and dq
         q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
-        comp = np.zeros(n) if compensation is None else _checked("compensation", compensation, (n,))
+        comp = self._zeros if compensation is None else _checked("compensation", compensation, (n,))
         if tau_ext is not None:
             bias = bias - _checked("tau_ext", tau_ext, (n,)) - comp
         f, V = self.policy(p, R)
         f = np.asarray(f, dtype=float)
         if f.shape != (6,) or np.shape(V) != (2,):
             raise ValueError(f"policy: expected f of shape (6,) and V = (V_pos, V_rot), found {f.shape}, {V}")
-        nothing = (G, dq, comp, f, V, np.full(6, np.nan), None, None, None, None)
+        nothing = (G, dq, comp, f, V, np.full(6, np.nan), None, None)
         if not math.isfinite(float(f @ f) + V[0] + V[1]):
             return nothing + ("policy output not finite (or beyond 1e154)",)
-        try:
-            Jp = np.linalg.solve(J @ J.T, J)          # J^+T (6, n)
-            F_c = impedance_wrench(Jp @ G, J @ dq, f, c.damping_pos, c.damping_rot)
-            Nproj = self._I - J.T @ Jp                # (n, n), projector onto the null space of J
-            # H = J^+ J^+T + w N has the closed-form inverse H^-1 = J^T J + N / w (J^+T J^T = I, J N = 0)
-            Hinv = J.T @ J + Nproj / c.null_weight
-            Hinv = 0.5 * (Hinv + Hinv.T)
-            if self._rest is None:                    # the first step after a reset: rest at this q
-                self._rest = (q.copy(), 0.5 * (Nproj + Nproj.T))
-            q_rest, N_rest = self._rest
-            tau_p = -c.null_stiffness * (N_rest @ (q - q_rest))   # posture spring, -dP/dq
-            F_t = F_c + Jp @ tau_p                    # its task part joins F_c, its null part tau_0
-            null = Nproj @ (G - c.null_damping * dq + tau_p)      # N tau_0
-            g = -(Jp.T @ F_t + c.null_weight * null)  # g = -H tau_free
-            b = self._constraint_bounds(q, dq, np.linalg.inv(M), bias, comp)
-        except np.linalg.LinAlgError:
+        (_, Jp, bad), (_, Minv, bad_M) = lapack.dposv(np.dot(J, J.T), J), lapack.dposv(M, self._I)  # Cholesky solves:
+        if bad or bad_M:                              # J^+T = (J J^T)^-1 J (6, n), M^-1 (n, n)
             return nothing + ("singular J or M",)
-        if not math.isfinite(float(g @ g) + float(b @ b)):
-            return nothing[:5] + (F_c, None, None, None, None, "model terms not finite (or beyond 1e154)")
-        return G, dq, comp, f, V, F_c, J.T @ F_t + null, Hinv, g, b, ""
+        if self._rest is None:                        # the first step after a reset: rest at this q
+            Nproj = self._I - np.dot(J.T, Jp)
+            self._rest = (q.copy(), 0.5 * (Nproj + Nproj.T))
+        X = self._X                                   # (3, n): G, tau_p, tau_0 = G - k_n dq + tau_p
+        X[0], X[1] = G, -c.null_stiffness * np.dot(self._rest[1], q - self._rest[0])   # posture spring -dP/dq
+        X[2] = X[0] + X[1] - c.null_damping * dq
+        JpX = np.dot(X, Jp.T)                         # (3, 6): J^+T G, J^+T tau_p, J^+T tau_0
+        F_c = impedance_wrench(JpX[0], np.dot(J, dq), f, c.damping_pos, c.damping_rot)
+        F_t = F_c + JpX[1]                            # the posture spring's task part joins F_c, its null part tau_0
+        null = X[2] - np.dot(JpX[2], J)               # N tau_0
+        tau_free = np.dot(F_t, J) + null
+        a0 = np.dot(Minv, bias)                       # ddq = M^-1 tau - a0
+        if not math.isfinite(float(tau_free @ tau_free) + float(a0 @ a0)):
+            return nothing[:5] + (F_c, None, None, "model terms not finite (or beyond 1e154)")
+        return G, dq, comp, f, V, F_c, tau_free, (J, Jp, F_t, null, q, c.k2 * dq, Minv, a0), ""
 
-    def _constraint_bounds(self, q, dq, Minv, bias, comp):
-        """b (4n,) for A tau >= b: rows +-M^-1 (E-CBF on q - q_min, q_max - q), then +-I (torque limits).
-        h = q - q_min: ddq + k2 dq + k1 (q - q_min) >= 0 with ddq = M^-1 (tau - bias)."""
-        c, n, A = self.config, self.robot.n, self._A
+    def _objective(self, J, Jp, F_t, null):
+        """H^-1 (n, n), g (n,): H = J^+ J^+T + w N has the closed-form inverse H^-1 = J^T J + N / w = I / w + J^T (J -
+        J^+T / w) (J^+T J^T = I, J N = 0); g = -H tau_free = -(J^+ F_t + w N tau_0)."""
+        w = self.config.null_weight
+        Hinv = np.dot(J.T, J - Jp / w)
+        Hinv += Hinv.T                                # symmetric to rounding: the QP reads every entry
+        Hinv.flat[::self.robot.n + 1] += 2.0 / w
+        return 0.5 * Hinv, -(np.dot(F_t, Jp) + w * null)
+
+    def _satisfies(self, tau, comp, q, k_dq, Minv, a0):
+        """Whether tau (n,) meets every row of the QP to 1e-9: both E-CBF rows (_constraint_bounds) and the limits."""
+        x, k1, room = Minv @ tau - a0 + k_dq, self.config.k1, self.tau_max - np.abs(tau + comp)    # x = ddq + k2 dq
+        lo, hi = x + k1 * (q - self.q_min), k1 * (self.q_max - q) - x
+        return min(lo[lo.argmin()], hi[hi.argmin()], room[room.argmin()]) >= -1e-9
+
+    def _constraint_bounds(self, comp, q, k_dq, Minv, a0):
+        """b (4n,) for A tau >= b, A's rows +-M^-1 (E-CBF on h = q - q_min, q_max - q: ddq + k2 dq + k1 h >= 0 with
+        ddq = M^-1 tau - a0; set here), then +-I (torque limits)."""
+        c, n, A, b = self.config, self.robot.n, self._A, np.empty(4 * self.robot.n)
         A[:n] = Minv
         np.negative(Minv, out=A[n:2 * n])
-        a0 = Minv @ bias                              # ddq = M^-1 tau - a0
-        k_dq = c.k2 * dq
-        b = np.empty(4 * n)
         b[:n] = a0 - c.k1 * (q - self.q_min) - k_dq
         b[n:2 * n] = k_dq - c.k1 * (self.q_max - q) - a0
         b[2 * n:3 * n] = -self.tau_max - comp
@@ -365,21 +369,19 @@ class CPIC:
     def _fallback(self, G, dq, comp, f, V, F_c, status):
         """Safe torque when the QP has no answer: gravity compensation + compensation + joint damping, clipped."""
         tau = np.clip(G + comp - np.asarray(self.config.fallback_damping) * dq, -self.tau_max, self.tau_max)
-        tau = np.where(np.isnan(tau), 0.0, tau)       # (+-inf clip to the limits; NaN only from inf - inf)
+        tau[np.isnan(tau)] = 0.0                      # (+-inf clip to the limits; NaN only from inf - inf)
         return tau, StepInfo(status, 0, np.zeros(0, dtype=int), True, f, V, F_c, tau - comp)
 
 
 def _null_projector(robot, q):
     """N = I - J^+ J (n, n) at q: the projector onto the null space of J (pseudo-inverse: any rank)."""
-    J = robot.jacobian(q)
-    N = np.eye(robot.n) - np.linalg.pinv(J) @ J
+    N = np.eye(robot.n) - np.linalg.pinv(J := robot.jacobian(q)) @ J
     return 0.5 * (N + N.T)
 
 
 def storage(dq, M, V, config: CPICConfig, P):
-    """S = 1/2 dq^T M dq + lambda_1 V + P (Prop. 4.1 with the posture spring's potential P =
-    ctrl.posture_potential(q)), lambda_1 V = lambda_1,pos V_pos + lambda_1,rot V_rot. Joint-space kinetic energy:
-    1/2 xdot^T M_x xdot plus the null-space motion's kinetic energy."""
+    """S = 1/2 dq^T M dq + lambda_1 V + P (Prop. 4.1; P = ctrl.posture_potential(q), the posture spring's),
+    lambda_1 V = lambda_1,pos V_pos + lambda_1,rot V_rot; dq^T M dq = xdot^T M_x xdot + the null-space motion's."""
     return 0.5 * dq @ M @ dq + config.damping_pos[0] * V[0] + config.damping_rot[0] * V[1] + P
 
 

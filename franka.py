@@ -5,39 +5,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import queue
 import sys
-import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from cpic import CPIC, Attractor, CPICConfig, LimitCycle
 from dynamics import Robot
-from rme import RME
+from robot.backends import (Q_START, FrankySimBackend, PandaPyBackend, PylibfrankaBackend, SimBackend, State,
+                            paper_tau_ext)
+from robot.worker import WORKERS, EstimatorSpec, make_worker
 
+__all__ = ["Q_START", "State", "paper_tau_ext", "SimBackend", "PylibfrankaBackend", "PandaPyBackend", "FrankySimBackend",
+           "Safety", "SafetyConfig", "make_controller", "run_loop", "summarize", "save_log", "main"]  # backends: robot/
 LIBS = ("pylibfranka", "panda-py")
 TASKS = ("hold", "limit-cycle")
-Q_START = (0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4)   # Franka's ready pose (panda_facts.md)
-
-
-@dataclass
-class State:
-    """One robot state as libfranka reports it: q, dq [rad, rad/s], tau_J and tau_ext_hat_filtered [Nm] (7,) in
-    libfranka's sign (tau_ext_hat_filtered = tau_J - model, the load configured in Desk included in the model);
-    duration_s: time since the previous state [s] (1 ms per cycle; more means cycles were missed)."""
-    q: np.ndarray
-    dq: np.ndarray
-    tau_J: np.ndarray
-    tau_ext_hat_filtered: np.ndarray
-    duration_s: float
-
-
-def paper_tau_ext(tau_ext_hat_filtered) -> np.ndarray:
-    """tau_ext (7,) in the paper's sign (Eq. 1, model - tau_J) from libfranka's tau_ext_hat_filtered (tau_J - model)."""
-    return -np.asarray(tau_ext_hat_filtered, dtype=float)
 
 
 # --- safety ------------------------------------------------------------------------------------------------
@@ -84,145 +67,6 @@ class Safety:
         return self.last.copy()
 
 
-# --- backends: read() -> State, write(cmd) with cmd excluding gravity, stop() --------------------------------------
-class SimBackend:
-    """The project's MuJoCo plant (sim.Plant, realistic preset) behind libfranka's interface: it reports
-    tau_ext_hat_filtered = -tau_ext (the plant's tau_ext is in the paper's sign) and adds the nominal model's gravity
-    to each command, as the robot does. payload: (t [s], m [kg], r (3,) [m]) changes scheduled on the plant."""
-
-    def __init__(self, rng: np.random.Generator, q0=Q_START, payload=(), preset="realistic"):
-        from sim import Plant, PlantConfig
-        self.plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
-        for t, m, r in payload:
-            self.plant.schedule_payload(t, m, r)
-        self._s = self.plant.reset(q0)
-        self.initial = self.read()                     # the state before control starts
-
-    def read(self) -> State:
-        s = self._s
-        return State(s.q.copy(), s.dq.copy(), s.tau_J.copy(), -s.tau_ext, self.plant.dt)
-
-    def write(self, cmd):
-        self._s = self.plant.step(np.asarray(cmd, dtype=float) + self.plant.robot.gravity(self._s.q))
-
-    def stop(self):
-        pass
-
-
-def _need(module, lib):
-    try:
-        return __import__(module)
-    except ImportError as err:
-        raise RuntimeError(f"--lib {lib}: the package is not installed ({err}); `pip install -r "
-                           f"requirements-robot.txt` (pylibfranka) or `pip install panda-python` (panda-py)") from None
-
-
-def _state_of(s, duration_s) -> State:
-    return State(np.array(s.q, float), np.array(s.dq, float), np.array(s.tau_J, float),
-                 np.array(s.tau_ext_hat_filtered, float), float(duration_s))
-
-
-class PylibfrankaBackend:
-    """pylibfranka: Robot(ip, RealtimeConfig), start_torque_control() -> readOnce() / writeOnce(Torques)."""
-
-    def __init__(self, ip: str, realtime: bool = True, control: bool = True):
-        plf = _need("pylibfranka", "pylibfranka")
-        self._plf, self._ctrl = plf, None
-        rt = plf.RealtimeConfig.kEnforce if realtime else plf.RealtimeConfig.kIgnore
-        try:
-            self.robot = plf.Robot(ip, rt)
-            self.initial = _state_of(self.robot.read_once(), 1e-3)     # the state before control starts
-            if control:
-                self._ctrl = self.robot.start_torque_control()
-        except Exception as err:
-            raise RuntimeError(f"--robot-ip {ip}: no robot answered through pylibfranka "
-                               f"({type(err).__name__}: {err})") from None
-
-    def read(self) -> State:
-        if self._ctrl is None:
-            return _state_of(self.robot.read_once(), 1e-3)
-        s, d = self._ctrl.readOnce()
-        return _state_of(s, d.to_sec())
-
-    def write(self, cmd):
-        if self._ctrl is not None:
-            self._ctrl.writeOnce(self._plf.Torques([float(x) for x in cmd]))
-
-    def stop(self):
-        if self._ctrl is not None:
-            t = self._plf.Torques([0.0] * 7)
-            t.motion_finished = True
-            try:
-                self._ctrl.writeOnce(t)
-            finally:
-                self._ctrl = None
-                self.robot.stop()
-
-
-class PandaPyBackend:
-    """panda-python: libfranka.Robot.control(callback) owns the 1 kHz loop, so it runs in a thread and hands each
-    state to read() and takes the command from write() (a cycle without a command within 0.9 ms resends the last).
-    control=False (dry run) only reads states (Panda.get_state)."""
-
-    def __init__(self, ip: str, control: bool = True, timeout: float = 0.9e-3):
-        panda_py = _need("panda_py", "panda-py")
-        from panda_py import libfranka
-        try:
-            self.panda = panda_py.Panda(ip)
-            self.robot = self.panda.get_robot()
-            self.initial = _state_of(self.panda.get_state(), 1e-3)     # the state before control starts
-        except Exception as err:
-            raise RuntimeError(f"--robot-ip {ip}: no robot answered through panda-python "
-                               f"({type(err).__name__}: {err})") from None
-        self._lf, self._timeout, self._control = libfranka, timeout, control
-        self._states, self._cmds = queue.Queue(maxsize=1), queue.Queue(maxsize=1)
-        self._last, self._done, self._error = [0.0] * 7, threading.Event(), None
-        if control:
-            self._thread = threading.Thread(target=self._run, daemon=True)
-            self._thread.start()
-
-    def _run(self):
-        def callback(state, duration):
-            if not self._states.full():
-                self._states.put_nowait(_state_of(state, duration.to_sec()))
-            try:
-                self._last = self._cmds.get(timeout=self._timeout)
-            except queue.Empty:
-                pass
-            t = self._lf.Torques(self._last)
-            t.motion_finished = self._done.is_set()
-            return t
-        try:
-            self.robot.control(callback)
-        except Exception as err:                       # reported by the next read()
-            self._error = err
-        self._done.set()
-
-    def read(self) -> State:
-        if not self._control:
-            return _state_of(self.panda.get_state(), 1e-3)
-        while True:
-            if self._error is not None or (self._done.is_set() and self._states.empty()):
-                raise RuntimeError(f"panda-python control ended: {self._error}")
-            try:
-                return self._states.get(timeout=0.1)
-            except queue.Empty:
-                continue
-
-    def write(self, cmd):
-        if self._control:
-            try:
-                self._cmds.get_nowait()                # a command the callback never took: replaced
-            except queue.Empty:
-                pass
-            self._cmds.put_nowait([float(x) for x in cmd])
-
-    def stop(self):
-        self._done.set()
-        if self._control:
-            self._thread.join(timeout=1.0)
-
-
 # --- the loop, written once for every backend ------------------------------------------------------------------
 def make_controller(robot: Robot, q0, task: str = "hold", stiffness_scale: float = 1.0) -> CPIC:
     """CPIC holding the ee pose at q0 (hold) or circling 5 cm around it (limit-cycle, Sec. 5.3), with the DS gains
@@ -253,6 +97,8 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     safety, limit = Safety(robot.torque_limits()), robot.torque_limits()
     rec = {k: np.full((steps, n), np.nan) for k in ("q", "dq", "tau_J", "tau_ext", "tau", "tau_cmd")}
     rec["t"], rec["theta_hat"], rec["callback_s"] = np.full(steps, np.nan), np.full((steps, 4), np.nan), np.zeros(steps)
+    rec["in_flight"] = np.zeros(steps, dtype=bool)     # an estimate was running beside the loop at the cycle's end
+    busy = getattr(getattr(estimator, "executor", None), "busy", lambda: False)
     k, t, missed, stopped, last_print = 0, 0.0, 0, "end", -np.inf
     try:
         for k in range(steps):
@@ -269,7 +115,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             for key, v in (("q", s.q), ("dq", s.dq), ("tau_J", s.tau_J), ("tau_ext", tau_ext), ("tau", tau),
                            ("tau_cmd", cmd)):
                 rec[key][k] = v
-            rec["t"][k] = t
+            rec["t"][k], rec["in_flight"][k] = t, busy()
             rec["theta_hat"][k] = getattr(estimator, "theta", np.zeros(4))
             if dry_run:
                 if t - last_print >= print_every:
@@ -309,8 +155,11 @@ def summarize(log, estimator, robot, limit, missed, held, stopped, seconds) -> d
     G = robot.gravity(q) if len(q) else np.zeros((0, robot.n))
     sent = cmd + G                                     # the torque the drives deliver (command + robot's gravity)
     dtau = np.abs(np.diff(np.vstack([np.zeros((1, robot.n)), cmd]), axis=0))
-    cb = log["callback_s"] * 1e3
+    cb, flight = log["callback_s"] * 1e3, log["in_flight"]
     peak = lambda a: np.abs(a).max(axis=0).round(4).tolist() if len(a) else [0.0] * robot.n
+    stats = lambda a: {"median": float(np.median(a)) if len(a) else 0.0,
+                       "p99": float(np.percentile(a, 99)) if len(a) else 0.0,
+                       "max": float(a.max()) if len(a) else 0.0, "cycles": int(len(a))}
     return {"seconds": float(log["t"][-1]) if len(log["t"]) else 0.0, "requested_seconds": seconds,
             "cycles": int(len(log["t"])), "stopped": stopped, "missed_cycles": int(missed), "nan_held": int(held),
             "estimates": [{"t": round(float(e.t), 4), "applied": round(float(e.applied), 4),
@@ -319,9 +168,7 @@ def summarize(log, estimator, robot, limit, missed, held, stopped, seconds) -> d
                           for e in getattr(estimator, "history", [])],
             "theta_hat": np.round(getattr(estimator, "theta", np.zeros(4)), 4).tolist(),
             "max_abs_tau": peak(sent), "tau_limit": limit.tolist(), "max_abs_dtau": peak(dtau),
-            "callback_ms": {"median": float(np.median(cb)) if len(cb) else 0.0,
-                            "p99": float(np.percentile(cb, 99)) if len(cb) else 0.0,
-                            "max": float(cb.max()) if len(cb) else 0.0}}
+            "callback_ms": stats(cb), "callback_ms_estimate_in_flight": stats(cb[flight | np.roll(flight, 1)])}
 
 
 def save_log(path, log, estimator=None):
@@ -339,7 +186,7 @@ def save_log(path, log, estimator=None):
 def make_backend(args, rng: np.random.Generator):
     if args.sim:
         payload = [(args.seconds / 2, args.sim_payload, (0.0, 0.0, 0.05))] if args.sim_payload > 0 else []
-        return SimBackend(rng, payload=payload)
+        return SimBackend(rng, payload=payload, paced=args.paced)
     if args.lib == "pylibfranka":
         return PylibfrankaBackend(args.robot_ip, realtime=not args.no_realtime, control=not args.dry_run)
     return PandaPyBackend(args.robot_ip, control=not args.dry_run)
@@ -359,7 +206,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stiffness-scale", type=float, default=1.0, help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
     ap.add_argument("--seed", type=int, default=0, help="the --sim plant's noise")
-    ap.add_argument("--sync-estimate", action="store_true", help="RME's estimates within the callback, not a thread")
+    ap.add_argument("--paced", action="store_true", help="with --sim: one state per ms of wall time, as a robot")
+    ap.add_argument("--worker", choices=WORKERS, default="process", help="where RME's estimates run beside the loop")
+    ap.add_argument("--sync-estimate", action="store_true", help="RME's estimates within the callback, no worker")
     args = ap.parse_args(argv)
     if not args.sim and not args.robot_ip:
         ap.error("--robot-ip: expected the robot's address (or --sim), found none")
@@ -376,23 +225,30 @@ def main(argv=None) -> int:
         print(f"franka.py: not started: {err}", file=sys.stderr)
         return 2
     controller = make_controller(robot, backend.initial.q, args.task, args.stiffness_scale)
-    pool, switch = ThreadPoolExecutor(1), sys.getswitchinterval()   # the estimates (1.5-4 ms) beside the loop
-    estimator = RME(robot, rng=np.random.default_rng(args.seed + 1), executor=None if args.sync_estimate else pool)
-    sys.setswitchinterval(1e-4)                # the loop gets the GIL back from the estimate's thread within 0.1 ms
+    spec = EstimatorSpec(seed=args.seed + 1)           # the estimator, rebuilt as it is in a worker process
+    try:
+        worker = None if args.sync_estimate else make_worker(args.worker, spec)   # the estimates (1.5-4 ms)
+    except (RuntimeError, ValueError):
+        backend.stop()
+        raise
+    estimator, switch = spec.build(executor=worker), sys.getswitchinterval()
+    sys.setswitchinterval(1e-4)                # the loop gets the GIL back from an estimate's thread within 0.1 ms
     try:
         summary, log = run_loop(backend, robot, controller, estimator, args.seconds, dry_run=args.dry_run)
     finally:
         sys.setswitchinterval(switch)
-        pool.shutdown(cancel_futures=True)
-    summary["estimate_in"] = "callback" if args.sync_estimate else "thread"
+        if worker is not None:
+            worker.shutdown()
+    summary["estimate_in"] = "callback" if args.sync_estimate else args.worker
     if args.log:
         save_log(args.log, log, estimator)
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
+        cb = summary["callback_ms"]
         print(f"{summary['cycles']} cycles, {summary['seconds']:.3f} s, stopped: {summary['stopped']}; estimates: "
               f"{[(e['t'], e['mass']) for e in summary['estimates']]}; callback median/p99/max "
-              f"{'/'.join(f'{v:.2f}' for v in summary['callback_ms'].values())} ms")
+              f"{'/'.join(f'{cb[k]:.2f}' for k in ('median', 'p99', 'max'))} ms")
     return 0
 
 

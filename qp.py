@@ -105,6 +105,12 @@ def dual_active_set(B, g, A, b, active, max_iterations, tol=1e-11):
     return _dual(B.T @ B, g, A, b, active, max_iterations, tol)[:5]
 
 
+def dual_active_set_from_inverse(Hinv, g, A, b, active, max_iterations, tol=1e-11):
+    """dual_active_set given H^-1 (n, n) itself, symmetric positive definite (unchecked): for a loop that has H^-1
+    in closed form (cpic.CPIC) and need not factor it."""
+    return _dual(Hinv, g, A, b, active, max_iterations, tol)[:5]
+
+
 def _dual(Hinv, g, A, b, active, max_iterations, tol, x=None, s=None):
     """Goldfarb and Idnani's dual method from H^-1 (n, n): (x, status, iterations, W, multipliers (m,), A x - b).
 

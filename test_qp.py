@@ -113,7 +113,7 @@ def test_qp_handles_dependent_and_overdetermined_active_constraints():
     than n constraints through x*; from a cold start and from a random (mostly wrong) warm start."""
     rng = np.random.default_rng(10)
     for t in range(90):
-        n, m, k = 7, int(rng.integers(11, 29)), int(rng.integers(1, 8))
+        m, k = int(rng.integers(11, 29)), int(rng.integers(1, 8))
         H, A, x_star = random_spd(rng), rng.normal(size=(m, 7)), rng.normal(size=7)
         lam = np.where(np.arange(m) < k, rng.uniform(0.1, 5.0, m), 0.0)
         slack = np.where(np.arange(m) < k, 0.0, rng.uniform(0.1, 2.0, m))

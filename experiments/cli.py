@@ -37,6 +37,8 @@ DEMOS = {
                     "experiments.reliability:main", ("seed", "json", "episodes")),
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
                        "experiments.cli:_diagnose_bench", ("json",)),
+    "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
+                "experiments.explore:explore", ("seed", "json")),
 }
 
 FLAGS = {

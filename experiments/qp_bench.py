@@ -30,7 +30,8 @@ def quadprog_solve(H, g, A, b):
 def qp_benchmark(seed=0, problems=300, repeats=20, show=True) -> dict:
     """Per problem the median of `repeats` interleaved calls of each solver [us]; over the problems their median and
     99th percentile, the median of the per-problem ratios solve_qp / quadprog, and the largest |x - x_quadprog|."""
-    import quadprog  # noqa: F401  (fail early with ImportError when it is missing)
+    import importlib
+    importlib.import_module("quadprog")               # fail early with ImportError when it is missing
     rng = np.random.default_rng(seed)
     ours, ref, worst = np.empty((problems, repeats)), np.empty((problems, repeats)), 0.0
     for i in range(problems):

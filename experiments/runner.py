@@ -58,6 +58,7 @@ class Record:
     R: np.ndarray = None
     history: list = field(default_factory=list)
     robot: object = None
+    exploration: list = field(default_factory=list)   # the explorer's Explorations (run(..., explorer=...))
 
     def __getitem__(self, key):                       # log["q"] reads like the dicts the demos print from
         return getattr(self, key)
@@ -116,17 +117,21 @@ def schedule(plant: Plant, events) -> list:
 
 
 def run(plant: Plant, controller, seconds: float, estimator=None, events=(), q0=None, dq0=None,
-        first: Sample | None = None, tau_ext_to_controller: bool = True, before_step=None) -> Record:
+        first: Sample | None = None, tau_ext_to_controller: bool = True, before_step=None, explorer=None) -> Record:
     """Run `controller` on `plant` for `seconds` at the plant's rate.
 
     Each 1 ms step: policy switches due; comp = estimator.update(q, dq, tau_ext) (if an estimator); tau, info =
     controller.step(q, dq, comp, tau_ext) (tau_ext only if tau_ext_to_controller: CPIC's barriers use it, Eq. 8);
     the plant applies tau. The plant starts from plant.reset(q0, dq0) unless `first` (a Sample it already returned)
     is given. before_step(k, sample), if given, runs first in each step (e.g. to move a hold's set point).
+    explorer (off by default): an experiments.explore.Explorer; it wraps the estimator (an RME) and moves the
+    controller's Attractor target to observe the CoM along gravity (Record.exploration lists what it did).
     """
     if not (np.isfinite(seconds) and seconds > 0):
         raise ValueError(f"seconds: expected a finite duration > 0 s, found {seconds}")
     pending = schedule(plant, events)
+    if explorer is not None:
+        estimator = explorer.attach(controller, estimator)
     if first is None:
         if q0 is None:
             raise ValueError("q0: expected a start pose (n,) or a first Sample, found neither")
@@ -151,7 +156,8 @@ def run(plant: Plant, controller, seconds: float, estimator=None, events=(), q0=
         if info is not None:
             rec["V"][k], rec["fallback"][k] = getattr(info, "V", np.nan), getattr(info, "fallback", False)
         s = plant.step(tau)
-    out = Record(**rec, history=list(getattr(estimator, "history", [])), robot=plant.robot)
+    out = Record(**rec, history=list(getattr(estimator, "history", [])), robot=plant.robot,
+                 exploration=list(getattr(explorer, "log", [])))
     out.p, out.R = plant.robot.ee_pose(out.q)
     out.last = s                                       # the sample after the last step
     return out

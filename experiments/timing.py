@@ -1,8 +1,10 @@
 """Timings of every hot path and the component benchmarks: `python sim.py timing` (the model, the plant, RME, the
 controller's QP and step, the network, VI) and `python sim.py detector-bench`, `python sim.py vi-bench`. Absolute times
-on a shared 2-core machine vary 2-3x between runs: compare rows of one run as ratios."""
+on a shared 2-core machine vary 2-3x between runs: compare rows of one run as ratios. `python -m experiments.timing
+worker`: franka.py's 1 kHz callback with RME's estimates in a thread, in a worker process or within the callback."""
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -233,3 +235,40 @@ def diagnose_benchmark(seconds: float = 20.0, repeats: int = 5) -> dict:
     res = {"samples": len(log), "joints": log.n, "median_s": float(np.median(times)), "runs": repeats,
            "prepare_s": t_load, "selected": d.selected}
     return res
+
+
+def worker_benchmark(seconds: float = 8.0, seed: int = 0, workers=("thread", "process", "callback")) -> dict:
+    """franka.py's loop (CPIC hold + RME) on the paced realistic plant (one state per ms of wall time, as the robot
+    gives them), a load of 1.0 / 0.5 kg added and removed every second. Per worker ("callback": the estimates within
+    RME.update): the callback time [ms] over all cycles and over the cycles with an estimate in flight (median, p99,
+    max), missed cycles (none on the plant: it waits), the estimates made and the mass compensated at the end."""
+    import franka
+    from robot.worker import EstimatorSpec, make_worker
+    loads = [(t, 1.0 if t % 4 == 1 else 0.5 if t % 4 == 3 else 0.0, (0.0, 0.0, 0.05)) for t in range(1, int(seconds))]
+    out = {}
+    for kind in workers:
+        spec = EstimatorSpec(seed=seed + 1)
+        worker = None if kind == "callback" else make_worker(kind, spec)
+        backend = franka.SimBackend(np.random.default_rng(seed), payload=loads, paced=True)
+        robot = backend.plant.robot
+        est, switch = spec.build(executor=worker), sys.getswitchinterval()
+        sys.setswitchinterval(1e-4)                # as franka.py
+        try:
+            summary, _ = franka.run_loop(backend, robot, franka.make_controller(robot, backend.initial.q), est,
+                                         seconds)
+        finally:
+            sys.setswitchinterval(switch)
+            if worker is not None:
+                worker.shutdown()
+        out[kind] = {"callback_ms": summary["callback_ms"],
+                     "callback_ms_estimate_in_flight": summary["callback_ms_estimate_in_flight"],
+                     "missed_cycles": summary["missed_cycles"], "estimates": len(summary["estimates"]),
+                     "mass_at_end": summary["theta_hat"][0]}
+    return out
+
+
+if __name__ == "__main__":          # python -m experiments.timing worker
+    if sys.argv[1:] != ["worker"]:
+        print("usage: python -m experiments.timing worker  (the other timings: python sim.py timing)")
+        sys.exit(2)
+    print_dict("franka.py loop, callback times [ms] by where the estimates run:", worker_benchmark())

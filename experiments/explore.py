@@ -1,0 +1,400 @@
+"""Active exploration for the CoM along gravity (ours, beyond the paper's Sec. 6 limitation): when the estimate at rest
+leaves a CoM component uncertain, a small, speed-limited reorientation through a moving Attractor target (Eq. 6), a
+second window there, one posterior from both poses (RME.estimate on lists, vi.combine), and back to the task."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from cpic import Attractor
+
+
+@dataclass(frozen=True)
+class ExploreSettings:
+    std_threshold: float = 0.02    # m: explore when a CoM component's posterior std after the estimate at rest is above
+    #                                this (from one pose rz keeps about the prior's 0.05 m; rx, ry reach a few mm)
+    tilt: float = math.radians(25)  # rad: the reorientation, about a horizontal world axis through the ee origin
+    axis: tuple = (0.0, 1.0, 0.0)  # that axis (world, horizontal); at the ready pose it is joint 6's
+    pivot: str = "wrist"           # the axis passes through "wrist" (joint 6's anchor: only the wrist need turn,
+    #                                the upper links stay where their model errors were referred) or "ee"
+    offset_std: float | None = 0.1  # Nm, each window's marginalised offset (vi.precompute; None: RME's 0.05): the
+    #                                realistic sensor's bias and the links' model errors change by 0.05-0.15 Nm
+    speed: float = 1.5             # rad/s: peak angular speed of the target (cosine profile; ours; joint 6 may
+    #                                turn at 2.61 rad/s, panda_facts.md)
+    settle: float = 0.2            # s at the tilted target before the window may end (the DS converges at 8 /s)
+    window: int = 200              # samples of each pose's window (RME's own, Sec. 4)
+    still_speed: float = 0.04      # rad/s: every joint slower than this counts as still (the DS still creeps
+    #                                back at 0.02-0.04 rad/s for 0.5 s after the tilt; friction then < 0.1 Nm)
+    rest_before: float = 0.25      # s the arm must have been still, with the estimate applied, before exploring
+    push_threshold: float = 1.5    # Nm: |tau_ext - the torque the estimate predicts| beyond this abandons the
+    #                                exploration (a person); moving the wrist at 1.2 rad/s leaves < 0.6 Nm (measured)
+
+    def __post_init__(self):
+        a = np.asarray(self.axis, dtype=float)
+        if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-9 or abs(a[2]) > 1e-9:
+            raise ValueError(f"axis: expected a horizontal world axis (x, y, 0), found {self.axis!r}")
+        checks = [("std_threshold", self.std_threshold > 0, "a std > 0 m"),
+                  ("tilt", 0 < abs(self.tilt) <= math.radians(45), "an angle in (0, 45 deg] (rad)"),
+                  ("speed", 0 < self.speed <= 2.0, "a speed in (0, 2] rad/s"),
+                  ("settle", self.settle >= 0, "a time >= 0 s"), ("rest_before", self.rest_before >= 0, "a time >= 0 s"),
+                  ("window", isinstance(self.window, int) and 20 <= self.window <= 1000, "20..1000 samples"),
+                  ("still_speed", self.still_speed > 0, "a speed > 0 rad/s"),
+                  ("push_threshold", self.push_threshold > 0, "a torque > 0 Nm"),
+                  ("pivot", self.pivot in ("wrist", "ee"), "'wrist' or 'ee'"),
+                  ("offset_std", self.offset_std is None or self.offset_std >= 0, "None or a torque >= 0 Nm")]
+        for name, ok, want in checks:
+            value = getattr(self, name)
+            if not ok or (isinstance(value, float) and not np.isfinite(value)):
+                raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
+
+    def profile(self, t):
+        """Angle (rad) of the target along the tilt t [s] after it starts moving: a/2 (1 - cos(pi t / T)),
+        T = pi |a| / (2 speed), so the peak angular speed is `speed`; (angle, T)."""
+        T = math.pi * abs(self.tilt) / (2.0 * self.speed)
+        s = min(max(t / T, 0.0), 1.0)
+        return 0.5 * self.tilt * (1.0 - math.cos(math.pi * s)), T
+
+
+def axis_rotation(axis, angle):
+    """Rodrigues: rotation (3, 3) by angle [rad] about the unit direction of axis (3,)."""
+    k = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * K @ K
+
+
+class MovingAttractor:
+    """The Attractor DS (Eq. 6) toward a target the explorer moves: at each instant f = -grad V of
+    Attractor(p_star, R_star), so with the target still the loop is the paper's; `move` sets R* = Rot(angle) R0."""
+
+    def __init__(self, base: Attractor):
+        self.base = self._now = base
+        self.angle, self.axis, self.pivot = 0.0, np.array([0.0, 1.0, 0.0]), base.p_star
+
+    p_star = property(lambda self: self._now.p_star)
+    R_star = property(lambda self: self._now.R_star)
+
+    def move(self, angle, axis=None, pivot=None):
+        """Target pose turned by angle [rad] about the world axis (3,) through the point pivot (3,):
+        R* = Rot R0, p* = pivot + Rot (p0 - pivot) (axis and pivot kept from the last call when None)."""
+        self.axis = self.axis if axis is None else np.asarray(axis, dtype=float)
+        self.pivot = self.pivot if pivot is None else np.asarray(pivot, dtype=float)
+        if angle != self.angle:
+            self.angle = float(angle)
+            self._now = self.at(angle)
+
+    def at(self, angle):
+        """The Attractor of the target at `angle` about the current axis and pivot."""
+        if angle == 0.0:
+            return self.base
+        Rot = axis_rotation(self.axis, angle)
+        return dataclasses.replace(self.base, p_star=self.pivot + Rot @ (self.base.p_star - self.pivot),
+                                   R_star=Rot @ self.base.R_star)
+
+    __call__ = lambda self, p, R: self._now(p, R)                 # -> f (6,), (V_pos, V_rot)
+
+
+@dataclass
+class Exploration:
+    """One exploration: times [s] (start: the target starts moving; end: it is back), status ("applied" or
+    "abandoned: <why>"), the estimate it started from and the one from both poses (or None)."""
+    start: float
+    status: str = "running"
+    end: float = float("nan")
+    before: object = None          # rme.Estimate
+    after: object = None           # rme.Estimate from both windows, or None
+    deviation: float = 0.0         # Nm, largest |tau_ext - predicted| seen while exploring
+    angle: list = field(default_factory=list)   # (t, target angle) of every step while exploring
+
+
+class Explorer:
+    """Wraps RME in the loop (runner.run(..., explorer=...)): update(q, dq, tau_ext) feeds RME and returns the
+    compensation; after an accepted estimate at rest whose CoM std exceeds settings.std_threshold it moves the
+    controller's target (a MovingAttractor around its Attractor), estimates from both poses and compensates that
+    estimate until RME's own estimate changes. A push (tau_ext departing from the estimate's prediction) or an
+    RME detection abandons it at once: the target returns, nothing from it is applied."""
+
+    def __init__(self, settings: ExploreSettings = ExploreSettings()):
+        if not isinstance(settings, ExploreSettings):
+            raise ValueError(f"settings: expected an ExploreSettings, found {type(settings).__name__}")
+        self.settings, self.log = settings, []
+
+    def attach(self, controller, rme):
+        """Take over the controller's Attractor target and wrap the estimator rme (an RME); returns self."""
+        if not isinstance(getattr(controller, "policy", None), Attractor):
+            raise ValueError(f"controller.policy: expected a cpic.Attractor to move, found "
+                             f"{type(getattr(controller, 'policy', None)).__name__}")
+        if not all(hasattr(rme, a) for a in ("update", "estimate", "history", "theta", "settings", "robot")):
+            raise ValueError(f"estimator: expected an rme.RME to explore for, found {type(rme).__name__}")
+        self.ctrl, self.rme, self.robot = controller, rme, rme.robot
+        self.policy = MovingAttractor(controller.policy)
+        controller.policy = self.policy
+        keep = 4 * int(round(rme.settings.rate))                      # 4 s of samples
+        self._q, self._dq, self._tau = (np.zeros((keep, self.robot.n)) for _ in range(3))
+        self._k, self._still, self._seen, self._phase = 0, 0, 0, None
+        self._theta, self._from, self._limit = None, None, self.robot.torque_limits()
+        return self
+
+    # --- what the runner reads ---------------------------------------------------------------------------
+    @property
+    def theta(self):
+        """The compensated estimate (4,): the exploration's while it holds, else RME's."""
+        return self.rme.theta if self._theta is None else self._theta
+
+    history, t = property(lambda self: self.rme.history), property(lambda self: self._k / self.rme.settings.rate)
+
+    # --- the loop ------------------------------------------------------------------------------------------
+    def update(self, q, dq, tau_ext):
+        comp = self.rme.update(q, dq, tau_ext)
+        keep = len(self._q)
+        i = self._k % keep
+        self._q[i], self._dq[i], self._tau[i] = q, dq, tau_ext
+        self._k += 1
+        self._still = self._still + 1 if np.abs(dq).max() < self.settings.still_speed else 0
+        if self.ctrl.policy is not self.policy:                      # the task switched policy: follow it
+            if self._phase is not None:
+                self._abandon("the task changed its target")
+            if isinstance(self.ctrl.policy, Attractor):
+                self.policy = MovingAttractor(self.ctrl.policy)
+                self.ctrl.policy = self.policy
+        if self._theta is not None and not np.array_equal(self.rme.theta, self._from):
+            self._theta = None                                        # RME estimated a new payload: its turn
+        if self._phase is None:
+            self._maybe_start()
+        else:
+            self._advance(q, tau_ext)
+        return comp if self._theta is None else np.clip(-self.robot.payload_torque(q, self._theta), -self._limit, self._limit)
+
+    def _maybe_start(self):
+        """Explore after an accepted estimate that RME has applied and will not refine, once the arm is still."""
+        s, rs, hist = self.settings, self.rme.settings, self.rme.history
+        if len(hist) == self._seen or self.policy.angle != 0.0:
+            return
+        e = hist[-1]
+        final = e.kind in ("at rest", "monitor") or not rs.refine or self.t > e.t + rs.refine_within
+        if not (e.accepted and final and np.isfinite(e.applied) and e.applied <= self.t):
+            if not e.accepted:
+                self._seen = len(hist)
+            return
+        if self._still < max(s.window, int(s.rest_before * rs.rate)):
+            return
+        self._seen = len(hist)
+        if np.max(e.std[1:]) <= s.std_threshold:
+            return
+        x = Exploration(self.t, before=e)
+        x.base = self._baseline(e)
+        x.windows = [self._window(s.window)]
+        x.theta0, x.t0, x.n_history = e.mean.copy(), self.t, len(hist)
+        self.policy.move(0.0, s.axis, self._pivot(x.windows[0][0].mean(axis=0)))
+        self.log.append(x)
+        self._phase, self._x = "out", x
+
+    def _pivot(self, q):
+        return self._pivot_of(self.robot, q, self.settings.pivot, self.policy.base.p_star)
+
+    @staticmethod
+    def _pivot_of(robot, q, pivot, p_star):
+        """The point (3,) the target turns about: p_star ("ee") or joint 6's anchor at pose q (n,) ("wrist")."""
+        if pivot == "ee":
+            return np.asarray(p_star, dtype=float)
+        d = mujoco.MjData(robot.model)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(robot.model, d)
+        return d.xanchor[5].copy()
+
+    def _baseline(self, e):
+        """The tau_ext level (n,) before the change estimate e answers: the reference RME referred its window to, the
+        first settings.reference samples of the detector's window at the detection (or the tau_ext that the
+        estimate at rest then left unexplained, if those samples are no longer kept)."""
+        rs = self.rme.settings
+        first = [h for h in self.rme.history if h.kind == "detection" and h.accepted and h.t <= e.t]
+        k0 = int(round(first[-1].t * rs.rate)) - rs.detector.window if first else -1
+        if first and self._k - k0 <= len(self._q):
+            idx = (k0 + np.arange(rs.reference)) % len(self._q)
+            return self._tau[idx].mean(axis=0)
+        q, tau, _ = self._window(self.settings.window)
+        return (tau - self.robot.payload_torque(q, e.mean)).mean(axis=0)
+
+    def _window(self, T):
+        """The last T samples, oldest first: q, tau_ext, dq (T, n)."""
+        idx = (self._k - T + np.arange(T)) % len(self._q)
+        return self._q[idx].copy(), self._tau[idx].copy(), self._dq[idx].copy()
+
+    def _advance(self, q, tau_ext):
+        s, x = self.settings, self._x
+        dev = float(np.linalg.norm(tau_ext - x.base - self.robot.payload_torque(q, x.theta0)))
+        x.deviation = max(x.deviation, dev)
+        if self._phase != "back":
+            if dev > s.push_threshold:
+                self._abandon(f"tau_ext departed {dev:.2f} Nm from the estimate's prediction (a push)")
+            elif len(self.rme.history) > x.n_history:
+                self._abandon("RME detected a change")
+        t = self.t - x.t0
+        if self._phase == "out":
+            angle, T = s.profile(t)
+            self.policy.move(angle)
+            if t >= T + s.settle and self._still >= s.window:
+                x.windows.append(self._window(s.window))
+                self._estimate(x)
+        elif self._phase == "back":
+            angle, T = s.profile(t - x.t_back)
+            self.policy.move(x.angle_back - angle * x.angle_back / s.tilt)
+            if t - x.t_back >= T:
+                self.policy.move(0.0)
+                self._phase, x.end = None, self.t
+                x.status = "applied" if x.status == "returning" else x.status
+        x.angle.append((self.t, self.policy.angle))
+
+    def _estimate(self, x):
+        """One posterior from the window at the start pose and the one at the tilted pose, each referred to the
+        baseline, each with its own marginalised offset (the load-free level at the tilted pose is not known)."""
+        qs, taus, dqs = zip(*x.windows)
+        taus = [tau - x.base for tau in taus]
+        rme = self.rme
+        if self.settings.offset_std is not None:                     # the same estimator, its offset prior changed
+            rme = copy.copy(rme)
+            rme.settings = dataclasses.replace(rme.settings, vi=dataclasses.replace(
+                rme.settings.vi, offset_std=self.settings.offset_std))
+        e = rme.estimate(list(qs), taus, dq=list(dqs) if rme.correction is not None else None)
+        e.kind, e.t = "exploration", self.t
+        x.after = e
+        if np.all(np.abs(e.mean[1:]) <= self.rme.settings.max_com) and np.isfinite(e.mean).all():
+            self._theta, self._from = e.mean.copy(), self.rme.theta.copy()
+            e.applied = self.t
+            self._return(x, "returning")
+        else:
+            self._return(x, "abandoned: the estimate from both poses is not a payload")
+
+    def _abandon(self, why):
+        self._x.after = self._return(self._x, f"abandoned: {why}")
+
+    def _return(self, x, status):
+        x.status, x.t_back, x.angle_back, self._phase = status, self.t - x.t0, self.policy.angle, "back"
+
+
+# --- checks and the demo (`python sim.py explore`) ----------------------------------------------------------------
+def limits_touched(rec, ctrl, t0, t1):
+    """Over rec's rows in [t0, t1] s: (smallest joint margin to [q_min, q_max] [rad], largest |tau| / tau_max); a
+    limit is touched when the margin is <= 0 or the ratio reaches 1 (the command clipped)."""
+    q, tau = (v[(rec.t >= t0) & (rec.t <= t1)] for v in (rec.q, rec.tau))
+    margin = float(np.min(np.minimum(q - ctrl.q_min, ctrl.q_max - q)))
+    return margin, float(np.max(np.abs(tau) / ctrl.tau_max))
+
+
+def storage_check(theta, settings: ExploreSettings = ExploreSettings(), hold=0.3, seconds=None):
+    """The exploration motion alone on the ideal plant holding theta (4,) with exact compensation: S = 1/2 dq^T M dq +
+    lambda_1 V + P (cpic.storage, the plant's own M) over each 1 ms step with that step's target must not increase
+    (Prop. 4.1, F_ext = 0, Delta F_mm = 0); the moving target adds lambda_1 [V(x, c_k+1) - V(x, c_k)].
+    Returns dict(max_rise [J] of S over a step at a fixed target, target_work [J], seconds)."""
+    from cpic import CPIC, storage
+    from dynamics import Q_READY
+    from experiments.runner import ExactCompensation, run
+    from sim import Plant
+    plant = Plant()
+    plant.set_payload(theta[0], theta[1:])
+    robot = plant.robot
+    policy = MovingAttractor(Attractor(*robot.ee_pose(Q_READY)))
+    ctrl = CPIC(robot, policy)
+    _, T = settings.profile(0.0)
+    dwell = settings.settle + settings.window / 1000.0
+    seconds = seconds or hold + 2 * T + dwell + 0.3
+    pivot = Explorer._pivot_of(robot, Q_READY, settings.pivot, policy.base.p_star)
+    angles = []
+
+    def move(k, sample):
+        t = k * plant.dt - hold
+        out = settings.profile(t)[0] - settings.profile(t - T - dwell)[0]
+        policy.move(out, settings.axis, pivot)
+        angles.append(policy.angle)
+    rec = run(plant, ctrl, seconds, estimator=ExactCompensation(robot, theta), q0=Q_READY, before_step=move)
+    d, M = mujoco.MjData(plant.model), np.zeros((robot.n, robot.n))
+    q, dq = np.concatenate([rec.q, [rec.last.q]]), np.concatenate([rec.dq, [rec.last.dq]])
+    p, R = robot.ee_pose(q)
+    S_now, S_next, work = [], [], 0.0
+    for k in range(len(rec.t)):                                   # S(x_k, c_k) and S(x_k+1, c_k)
+        target = policy.at(angles[k])
+        for i, out in ((k, S_now), (k + 1, S_next)):
+            d.qpos[:] = q[i]
+            mujoco.mj_forward(plant.model, d)
+            mujoco.mj_fullM(plant.model, d, M)
+            out.append(storage(dq[i], M, target(p[i], R[i])[1], ctrl.config, ctrl.posture_potential(q[i])))
+        if k + 1 < len(rec.t):                                    # what moving the target to c_k+1 adds
+            work += storage(np.zeros(robot.n), M, policy.at(angles[k + 1])(p[k + 1], R[k + 1])[1], ctrl.config, 0.0)
+            work -= storage(np.zeros(robot.n), M, target(p[k + 1], R[k + 1])[1], ctrl.config, 0.0)
+    rise = np.array(S_next) - np.array(S_now)
+    return dict(max_rise=float(rise.max()), target_work=float(work), seconds=float(seconds))
+
+
+def explore_trial(theta, seed, settings: ExploreSettings = ExploreSettings(), preset="realistic", pushes=(),
+                  t_attach=0.75, seconds=5.0):
+    """Hold the ready pose under CPIC with RME and the explorer, attach theta (4,) at t_attach: (Record, CPIC)."""
+    from cpic import CPIC
+    from dynamics import Q_READY
+    from experiments.runner import PayloadChange, run
+    from rme import RME
+    from sim import Plant, PlantConfig
+    rng = np.random.default_rng(seed)
+    plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
+    ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)))
+    rme = RME(plant.robot, rng=np.random.default_rng(seed + 1))
+    rec = run(plant, ctrl, seconds, estimator=rme, events=[PayloadChange(t_attach, theta[0], theta[1:])] +
+              list(pushes), q0=Q_READY, explorer=Explorer(settings))
+    return rec, ctrl
+
+
+def explore_table(seed=0, settings: ExploreSettings = ExploreSettings(), preset="realistic"):
+    """Table 5's six payloads, one seeded trial each: the estimate at rest (before) and from both poses (after)."""
+    from experiments.bench import TABLE5
+    rows = []
+    for i, theta in enumerate(TABLE5):
+        theta = np.array(theta)
+        rec, ctrl = explore_trial(theta, seed=1000 * (i + 1) + seed, settings=settings, preset=preset)
+        row = dict(truth=theta.tolist(), before=None, after=None, status="no estimate at rest", seconds=None)
+        if rec.exploration:
+            x = rec.exploration[0]
+            end = x.end if np.isfinite(x.end) else rec.t[-1]
+            margin, ratio = limits_touched(rec, ctrl, x.start, end)
+            row.update(before=x.before.mean.tolist(), before_std=x.before.std.tolist(), status=x.status,
+                       after=None if x.after is None else x.after.mean.tolist(),
+                       after_std=None if x.after is None else x.after.std.tolist(), seconds=float(end - x.start),
+                       joint_margin=margin, torque_ratio=ratio, touched=bool(margin <= 0 or ratio >= 1),
+                       deviation=x.deviation)
+        row["storage"] = storage_check(theta, settings)
+        rows.append(row)
+    err = lambda key, j: [abs(r[key][j] - r["truth"][j]) for r in rows if r[key] is not None]
+    summary = {f"{key}_mean_abs_error": [float(np.mean(err(key, j))) if err(key, j) else None for j in range(4)]
+               for key in ("before", "after")}
+    return dict(rows=rows, **summary, settings=dataclasses.asdict(settings), preset=preset, seed=seed)
+
+
+def explore(args):
+    """`python sim.py explore [--seed S] [--json]`: the exploration on Table 5's payloads at the ready pose."""
+    import json
+    res = explore_table(seed=args.seed)
+    if args.json:
+        print(json.dumps(res))
+        return res
+    s = ExploreSettings()
+    print(f"Active exploration for the CoM along gravity: realistic plant, ready pose, seed {args.seed}; tilt "
+          f"{math.degrees(s.tilt):.0f} deg about world {tuple(s.axis)} through the {s.pivot}, peak {s.speed} rad/s.")
+    print("truth (m, rx, ry, rz) | before: estimate at rest | after: both poses   |abs error| m [g], r [mm]   "
+          "time [s]  limit touched  S rise [J]")
+    f = lambda v: " ".join(f"{x:6.3f}" for x in v)
+    for r in res["rows"]:
+        if r["before"] is None:
+            print(f"  {f(r['truth'])}  {r['status']}")
+            continue
+        e = lambda key: "    -" if r[key] is None else " ".join(
+            f"{1e3 * abs(a - b):4.0f}" for a, b in zip(r[key], r["truth"]))
+        print(f"  {f(r['truth'])}\n     before {f(r['before'])}   {e('before')}\n     after  "
+              f"{f(r['after']) if r['after'] else r['status']:27s}   {e('after')}   {r['seconds']:5.2f}   "
+              f"{'yes' if r['touched'] else 'no':3s} (margin {r['joint_margin']:.2f} rad, |tau|/max "
+              f"{r['torque_ratio']:.2f})  {r['storage']['max_rise']:.1e}")
+    print("mean |error|      m [g]  rx [mm]  ry [mm]  rz [mm]")
+    for key in ("before", "after"):
+        print(f"  {key:6s}         " + "  ".join(f"{1e3 * (x or np.nan):6.1f}" for x in res[f"{key}_mean_abs_error"]))
+    return res

@@ -1,0 +1,80 @@
+"""franky-sim (a simulated Franka FCI server on MuJoCo) with a load that can be added to the simulated hand while a
+client runs: `python -m robot.franky_load --hostname 127.0.0.1 --mass 1 --com 0 0 0.05`; SIGUSR1 adds the load at
+the next 1 ms tick (the physics only: the server's own gravity model, and so its `m_load`, stays unchanged)."""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+import mujoco
+import numpy as np
+
+
+def add_point_mass(model: mujoco.MjModel, body: int, m: float, r) -> None:
+    """Fuse a point mass m [kg] at r (3,) [m] (body frame) into the body's inertial: new mass, CoM and inertia
+    about the new CoM (parallel-axis theorem), principal axes in body_iquat; then mj_setConst for the derived values
+    (on a scratch MjData: it moves its data to qpos0)."""
+    m0, c0 = float(model.body_mass[body]), model.body_ipos[body].copy()
+    R0 = np.empty(9)
+    mujoco.mju_quat2Mat(R0, model.body_iquat[body])
+    R0 = R0.reshape(3, 3)
+    I0 = R0 @ np.diag(model.body_inertia[body]) @ R0.T      # about c0, body frame
+    m1 = m0 + m
+    c1 = (m0 * c0 + m * np.asarray(r, float)) / m1
+    shift = lambda mass, d: mass * (d @ d * np.eye(3) - np.outer(d, d))
+    I1 = I0 + shift(m0, c0 - c1) + shift(m, np.asarray(r, float) - c1)
+    w, V = np.linalg.eigh(I1)
+    if np.linalg.det(V) < 0:
+        V[:, 0] = -V[:, 0]
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, V.ravel())
+    model.body_mass[body], model.body_ipos[body], model.body_inertia[body], model.body_iquat[body] = m1, c1, w, quat
+    mujoco.mj_setConst(model, mujoco.MjData(model))
+
+
+def _frictionless(sim):
+    """Before the first step (the model exists once the server started the simulation): no joint friction."""
+    if sim.model.dof_frictionloss.any():
+        sim.model.dof_frictionloss[:] = 0.0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hostname", default="127.0.0.1")
+    ap.add_argument("--mass", type=float, default=1.0, help="kg added to the hand on SIGUSR1")
+    ap.add_argument("--com", type=float, nargs=3, default=(0.0, 0.0, 0.05), help="m, in the hand frame")
+    ap.add_argument("--frictionless", action="store_true",
+                    help="no joint friction (franky-sim's joints have frictionloss 1.1 Nm, which at rest holds up "
+                         "to that much of a load's torque: about 0.2 kg of 1 kg at the ready pose)")
+    ap.add_argument("--max-seconds", type=float, default=120.0, help="the server stops by itself after this")
+    args = ap.parse_args(argv)
+    if not (np.isfinite(args.mass) and 0 < args.mass <= 3):
+        raise ValueError(f"--mass: expected 0..3 kg, found {args.mass!r}")
+    import franky_sim
+    from franky_sim.mujoco_simulator import MujocoSimulator
+    asked, ticks = [False], [0]
+    signal.signal(signal.SIGUSR1, lambda *_: asked.__setitem__(0, True))
+    with MujocoSimulator() as sim:
+        sim.add_robot()
+        if args.frictionless:
+            sim.register_pre_step_callback(_frictionless)
+
+        def tick(s):
+            ticks[0] += 1
+            if asked[0]:
+                asked[0] = False
+                hand = mujoco.mj_name2id(s.model, mujoco.mjtObj.mjOBJ_BODY, "robot0_hand")
+                add_point_mass(s.model, hand, args.mass, args.com)
+                print(f"load added: {args.mass} kg at {list(args.com)} m, tick {ticks[0]}", flush=True)
+            if ticks[0] >= args.max_seconds * 1000:
+                server.running = False
+        sim.register_pre_step_callback(tick)
+        with franky_sim.SimulationServer(sim, hostname_candidates=[args.hostname]) as server:
+            print(f"Connect to the server using '{args.hostname}'", flush=True)
+            server.run_forever()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
