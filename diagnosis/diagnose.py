@@ -4,6 +4,7 @@ nominal Eq. 1 model and the effects of effects.py; held-out forward selection). 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 from dataclasses import dataclass, field
@@ -12,6 +13,7 @@ import numpy as np
 
 from dynamics import Robot
 from diagnosis.effect_model import Model
+from diagnosis.findings import collect, format_findings
 from diagnosis.heldout import Selection, blocks_of, rank
 from diagnosis.logs import Log, LogConfig, load_log
 
@@ -88,7 +90,8 @@ class Diagnosis:
     each {effect, k, explained, explained_joints, joints (improved), worse (joints made worse), significant, rms_after,
     rms_change (n,) = rms_after / rms_before - 1, total_change, total_t, drop, t, params}; steps: the forward
     selection, each {effect, rms_before, rms_after, rms_change, explained, joints, params}; selected: effect names;
-    model: the input model plus the selected effects, fitted on the whole log; stop: why selection ended."""
+    model: the input model plus the selected effects, fitted on the whole log; stop: why selection ended; findings:
+    what the data asked of an effect beyond its physical constraints, [{effect, text, joints, violations}]."""
     rms: np.ndarray
     ranking: list
     steps: list
@@ -97,6 +100,7 @@ class Diagnosis:
     stop: str
     samples: int = 0
     info: dict = field(default_factory=dict)
+    findings: list = field(default_factory=list)
 
 
 def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = DiagnoseConfig()) -> Diagnosis:
@@ -112,8 +116,9 @@ def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = Diagno
     per-block log error ratios log(sse_before / sse_after) have t >= t_min AND the torque explained there is
     >= min_torque RMS. So the selection cannot trade one joint's error for another's. Parsimony: a significant
     candidate with fewer parameters is preferred unless the better-scoring one is significantly better than it on some
-    joint by rule (c) (e.g. coulomb over sigmoid, payload over rigid_payload on a quasi-static log). Candidates:
-    Effect objects or library names."""
+    joint by rule (c) (e.g. coulomb over sigmoid, payload over rigid_payload on a quasi-static log). Every fit keeps
+    to the effects' physical constraints; where the unconstrained fit of a candidate breaks them and scores
+    significantly better for it, that is a finding (findings.py). Candidates: Effect objects or library names."""
     s = model.signals(log)
     y = s.measured() - model.torque(s, [e for e in model.effects if e.name in model.fixed])
     block = blocks_of(s.t, config.block)
@@ -129,37 +134,44 @@ def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = Diagno
     for e in model.free:
         sel.extend(e)
     rms0 = np.sqrt(sel.sse.sum(axis=0) / len(s))
-    ranking, steps, stop = _forward_selection(sel, cands, config)
+    ranking, steps, stop, asked = _forward_selection(sel, cands, config)
     final = model.copy()
     for st in steps:
         final.add(st["obj"])
     if final.free:
         final.fit(s)
-    return Diagnosis(rms0, ranking, steps, [st["effect"] for st in steps], final, stop, len(s),
-                     {"blocks": int(block.max() + 1), "block_s": config.block})
+    selected = [st["effect"] for st in steps]
+    return Diagnosis(rms0, ranking, steps, selected, final, stop, len(s),
+                     {"blocks": int(block.max() + 1), "block_s": config.block}, collect(asked, selected))
 
 
 def _forward_selection(sel: Selection, cands: list, config: DiagnoseConfig):
-    """Add the top-ranked significant candidate while there is one: (first round's ranking, steps, stop reason)."""
-    N, ranking, steps = len(sel.s), None, []
+    """Add the top-ranked significant candidate while there is one: (first round's ranking, steps, stop reason, what
+    the data asked of each effect beyond its constraints when it was last tried {effect: asked})."""
+    N, ranking, steps, asked = len(sel.s), None, [], {}
     for _ in range(config.max_add):
         if not cands:
-            return ranking or [], steps, "no candidate effects left"
+            return ranking or [], steps, "no candidate effects left", asked
         order = rank([sel.try_effect(c) for c in cands], config, N)
+        for r in order:
+            asked.pop(r["effect"], None)
+            if r["asked"]:
+                asked[r["effect"]] = r["asked"]
         ranking = order if ranking is None else ranking
         top = order[0]
         if not top["significant"]:
             j = int(np.argmax(top["drop"]))
-            return ranking, steps, (f"no remaining effect is significant (best: {top['effect']}, held-out RMS drop "
-                                    f"{100 * top['drop'][j]:.1f} % on J{j + 1}, t = {top['t'][j]:.1f}; total "
-                                    f"{100 * top['total_change']:+.1f} %, t = {top['total_t']:.1f}; "
-                                    f"worse on joints {top['worse'] or '-'})")
+            stop = (f"no remaining effect is significant (best: {top['effect']}, held-out RMS drop "
+                    f"{100 * top['drop'][j]:.1f} % on J{j + 1}, t = {top['t'][j]:.1f}; total "
+                    f"{100 * top['total_change']:+.1f} %, t = {top['total_t']:.1f}; "
+                    f"worse on joints {top['worse'] or '-'})")
+            return ranking, steps, stop, asked
         steps.append(dict(effect=top["effect"], obj=top["obj"], rms_before=np.sqrt(sel.sse.sum(axis=0) / N),
                           rms_after=top["rms_after"], rms_change=top["rms_change"], explained=top["explained"],
                           joints=top["joints"], params=top["params"]))
         sel.accept(top)
         cands = [c for c in cands if c.name != top["effect"]]
-    return ranking, steps, f"stopped after max_add = {config.max_add} steps"
+    return ranking, steps, f"stopped after max_add = {config.max_add} steps", asked
 
 
 def heldout_rms(model: Model, log, config: DiagnoseConfig = DiagnoseConfig()) -> np.ndarray:
@@ -216,6 +228,7 @@ def format_diagnosis(d: Diagnosis, config: DiagnoseConfig = DiagnoseConfig()) ->
     lines.append(f"    stop: {d.stop}")
     if not d.steps:
         lines.append("  nothing missing: no candidate effect explains a significant part of the residual")
+    lines += format_findings(d.findings)
     lines += ["  model after selection (fitted on the whole log):", d.model.report()]
     return "\n".join(lines)
 
@@ -254,12 +267,9 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     args = p.parse_args(argv)
     if args.log is None:
         p.error("a LOG file is needed")
-    if args.plot:
-        try:
-            import matplotlib  # noqa: F401
-        except ImportError:
-            print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
-            return 2
+    if args.plot and importlib.util.find_spec("matplotlib") is None:
+        print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
+        return 2
     if args.save and not args.add:
         p.error("--save needs --add (the effects to fit and save)")
     try:
@@ -301,7 +311,7 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None) ->
                        "significant": r["significant"], "rms_after": r["rms_after"], "worse_joints": r["worse"],
                        "rms_change_percent": 100 * r["rms_change"], "total_change_percent": 100 * r["total_change"]}
                       for r in d.ranking],
-          "selected": d.selected, "stop": d.stop}
+          "selected": d.selected, "stop": d.stop, "findings": d.findings}
     out = {"model": model, "before": before, "diagnosis": d, "log": log}
     if add:
         added = model.copy()
@@ -315,7 +325,8 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None) ->
                  "  held-out RMS [Nm]  " + " ".join(f"{v:.3f}" for v in held)]
         js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit, "rms_heldout": held,
                        "params": {e.name: added.params[e.name] for e in added.free},
-                       "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl}}
+                       "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl},
+                       "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()}}
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)
     return out

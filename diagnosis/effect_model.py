@@ -1,5 +1,6 @@
-"""A robot model as a sum of effects (Eq. 1 plus the effects of effects.py), fitted by least squares, and the
-correction it offers RME: the fitted torques beyond the nominal model in the paper's tau_ext sign (Eq. 1)."""
+"""A robot model as a sum of effects (Eq. 1 plus the effects of effects.py), fitted by least squares under each
+effect's physical constraints (physical.py), and the correction it offers RME: the fitted torques beyond the nominal
+model in the paper's tau_ext sign (Eq. 1)."""
 from __future__ import annotations
 
 import copy
@@ -8,23 +9,12 @@ import json
 import numpy as np
 
 from diagnosis.batch_dynamics import BatchDynamics
-from dynamics import Robot, as_states
-from diagnosis.effects import Effect, EffectConfig, Signals, library
+from diagnosis.effects import Effect, EffectConfig, Signals, library, segments
 from diagnosis.logs import Log
+from diagnosis.physical import solve, solve_physical
+from dynamics import Robot, as_states
 
-
-def solve(G, b, rcond: float = 1e-10):
-    """Least squares from normal equations G p = b (K, K), (K,): Jacobi-scaled, pseudo-inverse below rcond * the
-    largest eigenvalue (unidentifiable combinations get 0). Returns (p (K,), info {rank, K})."""
-    K = len(b)
-    if K == 0:
-        return np.zeros(0), {"rank": 0, "K": 0}
-    d = np.sqrt(np.maximum(np.diag(G), 0.0))
-    d[d == 0] = 1.0
-    lam, V = np.linalg.eigh(G / np.outer(d, d))
-    keep = lam > rcond * max(lam.max(), 1e-300)
-    p = V[:, keep] @ ((V[:, keep].T @ (b / d)) / lam[keep])
-    return p / d, {"rank": int(keep.sum()), "K": K}
+__all__ = ["Model", "solve", "solve_physical"]
 
 
 class Model:
@@ -37,6 +27,7 @@ class Model:
         self.library = library(config)
         self.effects, self.params, self.nl, self.fixed = [], {}, {}, set()
         self.fitted, self._batch = False, None
+        self.violations = {}                 # effect -> [(label, value)] the unconstrained fit asked for (last fit)
 
     @classmethod
     def nominal(cls, robot: Robot, config: EffectConfig = EffectConfig()) -> "Model":
@@ -51,7 +42,7 @@ class Model:
     def copy(self) -> "Model":
         new = copy.copy(self)
         new.effects, new.params, new.nl = list(self.effects), dict(self.params), dict(self.nl)
-        new.fixed = set(self.fixed)
+        new.fixed, new.violations = set(self.fixed), dict(self.violations)
         return new
 
     def effect(self, e) -> Effect:
@@ -100,16 +91,17 @@ class Model:
         """Sum of the effects' torques (T, n) with the current parameters."""
         out = np.zeros((len(s), s.n))
         for e in (self.effects if effects is None else effects):
-            out += e.block(s, self.nl.get(e.name)) @ self.params[e.name]
+            out += e.block(s, self.nl.get(e.name)) @ e.coef(self.params[e.name], self.robot.g)
         return out
 
     def fit(self, log, rows=None, iterations: int = 3) -> dict:
         """Fit the free parameters to tau_J on the log, or on its samples `rows` (an index or mask; regressors are
         computed on the whole log first, so filters never bridge the gaps); nonlinear parameters alternate with the
-        linear solve. Returns info {status, rank, K, iterations}."""
+        linear solve, which keeps every effect inside its physical constraints (physical.solve_physical; what the
+        unconstrained fit asked for beyond them is left in self.violations). Returns info {status, rank, K,
+        iterations, constrained, violations}."""
         s = self.signals(log)
         idx = np.arange(len(s)) if rows is None else np.arange(len(s))[rows]
-        sub = s if rows is None else Signals(s.log.rows(idx), self.robot, s.batch)
         free = self.free
         y = (s.measured() - self.torque(s, [e for e in self.effects if e.name in self.fixed]))[idx]
         nonlinear = [e for e in free if e.nonlinear]
@@ -117,7 +109,7 @@ class Model:
         for _ in range(iterations if nonlinear else 0):
             for e in nonlinear:
                 z = y - self.torque(s, [f for f in free if f is not e])[idx]
-                self.nl[e.name] = e.fit_nonlinear(sub, z, self.nl[e.name])
+                self.nl[e.name] = e.fit_nonlinear(s, idx, z, self.nl[e.name])
             info = self._fit_linear(s, y, free, idx)
         info["iterations"] = iterations if nonlinear else 1
         self.fitted = True
@@ -125,13 +117,14 @@ class Model:
 
     def _fit_linear(self, s, y, free, idx):
         blocks = [e.block(s, self.nl.get(e.name))[idx] for e in free]
+        self.violations = {}
         if not blocks:
-            return {"status": "ok", "rank": 0, "K": 0}
+            return {"status": "ok", "rank": 0, "K": 0, "constrained": False, "violations": {}}
         A = np.concatenate(blocks, axis=2).reshape(-1, sum(Y.shape[2] for Y in blocks))
-        p, info = solve(A.T @ A, A.T @ y.reshape(-1))
-        k0 = 0
-        for e, Y in zip(free, blocks):
-            self.params[e.name], k0 = p[k0:k0 + Y.shape[2]], k0 + Y.shape[2]
+        _, info = solve_physical(A.T @ A, A.T @ y.reshape(-1), segments(free, self.robot.n, self.robot.g))
+        for e, p in zip(free, info.pop("params")):
+            self.params[e.name] = p
+        self.violations = info["violations"]
         info["status"] = "ok" if info["rank"] == info["K"] else \
             f"rank deficient: {info['K'] - info['rank']} parameter combinations not identifiable (set to 0)"
         return info
@@ -162,8 +155,9 @@ class Model:
         s = self.signals(Log(t=np.arange(T, dtype=float), q=qa, dq=dqa, ddq=ddqa, tau_J=None, tau_ext=z))
         out = np.zeros((T, self.robot.n))
         for e in self.effects:
-            delta = self.params[e.name] - e.nominal
-            if np.any(delta != 0):
+            p = self.params[e.name]
+            if np.any(p != e.nominal):
+                delta = e.coef(p, self.robot.g) - e.coef(np.full(p.shape, e.nominal), self.robot.g)
                 out -= e.block(s, self.nl.get(e.name)) @ delta
         return out if batched else out[0]
 
@@ -174,6 +168,9 @@ class Model:
             tag = "fixed" if e.name in self.fixed else ("fitted" if self.fitted else "not fitted")
             text = e.describe(self.params[e.name], self.nl.get(e.name), self.robot.n)
             lines.append(f"  {e.name:14s} ({tag}): {text}")
+            if self.violations.get(e.name):
+                asked = ", ".join(f"{k} {v:.4g}" for k, v in self.violations[e.name])
+                lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: {asked}")
         return "\n".join(lines)
 
     def save(self, path) -> None:
@@ -220,7 +217,12 @@ class Model:
             model.add(name, fixed=params if item.get("fixed") else None)
             model.params[name] = params
             if item.get("nonlinear") is not None:
-                model.nl[name] = np.asarray(item["nonlinear"], dtype=float)
+                nl = np.asarray(item["nonlinear"], dtype=float)
+                want = (robot.n, len(e.nonlinear[0])) if e.nonlinear else None
+                if nl.shape != want or not np.all(np.isfinite(nl)):
+                    raise ValueError(f"{path}: effect {name!r} expected nonlinear parameters of shape {want}, "
+                                     f"found {nl.shape}")
+                model.nl[name] = nl
         model.fitted = bool(doc.get("fitted", False))
         return model
 

@@ -7,22 +7,25 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
-from scipy.special import expit
 
 from diagnosis.batch_dynamics import BatchDynamics
-from dynamics import Robot
+from diagnosis.friction import fit_coulomb, fit_sigmoid, sigmoid_shape
 from diagnosis.logs import Log
+from diagnosis.physical import KINDS, Segment, tilt_columns
+from dynamics import Robot
 
 
 @dataclass(frozen=True)
 class EffectConfig:
-    """Shape constants of the library's nonlinear friction terms."""
-    coulomb_width: float = 0.05              # rad/s, tanh(dq / width): sharp beside Gaz's 0.1-0.4 rad/s sigmoids
+    """Shape constants and bounds of the library's nonlinear terms."""
+    coulomb_width: float = 0.05              # rad/s, start of the fitted width w of tanh(dq / w)
+    coulomb_widths: tuple = (0.002, 0.5)     # rad/s, bounds of w: from a step to the width of Gaz's sigmoids
+    tilt_max: float = 0.35                   # rad (20 deg), bound of the tilt angles ax, ay
     sigmoid_p2: tuple = (0.5, 200.0)         # s/rad, bounds of Gaz p2 (fitted values 5-17, Gaz et al. 2019)
     sigmoid_p3: tuple = (-0.3, 0.3)          # rad/s, bounds of Gaz p3 (fitted |p3| < 0.05, Gaz et al. 2019)
-    sigmoid_rows: int = 2000                 # samples per joint used for the nonlinear fit (every k-th row)
+    sigmoid_rows: int = 2000                 # samples per joint used for the sigmoid's fit (every k-th row)
+    coulomb_rows: int = 1000                 # ... for the Coulomb width (each one a filter window of dq; ours)
 
 
 class Signals:
@@ -118,9 +121,12 @@ class Effect:
     payload: part of the load rather than of the robot (reported as theta = (m, r) when possible).
     smooth: filter the block like the log's torques (needed for sharp regressors such as Coulomb friction; the
     library's smooth effects skip it, since their content lies inside the filter's pass band anyway).
-    Nonlinear effects also give nonlinear=(names, units, initial (n, k)) and fit_nonlinear(signals, z, nl) -> nl
-    (signals: the training rows only, z (T', n) the residual they should explain, nl the start), and their regressor
-    takes (signals, nl)."""
+    lower, upper: physical bounds per parameter name (repeated per joint for a per-joint effect; None = unbounded).
+    physical: a named constraint of physical.KINDS: "rigid_body" (10 parameters with a positive semidefinite
+    pseudo-inertia), "tilt" (parameters = angles (ax, ay), regressor columns c(ax, ay) = R g - g, 3 of them).
+    Nonlinear effects also give nonlinear=(names, units, initial (k,)) and
+    fit_nonlinear(signals, rows, z, nl) -> nl (signals of the whole log, rows (T',) the training rows, z (T', n) the
+    residual they should explain, nl the start), and their regressor takes (signals, nl)."""
     name: str
     explanation: str
     regressor: Callable
@@ -133,9 +139,41 @@ class Effect:
     nonlinear: tuple | None = None
     fit_nonlinear: Callable | None = None
     smooth: bool = True
+    lower: tuple | None = None
+    upper: tuple | None = None
+    physical: str = ""
+
+    def __post_init__(self):
+        for name in ("lower", "upper"):
+            v = getattr(self, name)
+            if v is not None and len(v) != len(self.params):
+                raise ValueError(f"{name}: expected one bound per parameter ({len(self.params)}), found {len(v)}")
+        if self.physical not in KINDS:
+            raise ValueError(f"physical: expected one of {KINDS}, found {self.physical!r}")
 
     def size(self, n: int) -> int:
         return len(self.params) * (n if self.per_joint else 1)
+
+    def columns(self, n: int) -> int:
+        """Columns of the regressor block: size(n), or 3 for a tilt (the components of dg)."""
+        return 3 if self.physical == "tilt" else self.size(n)
+
+    def coef(self, p, g) -> np.ndarray:
+        """The block's coefficients for parameters p: p itself, or dg = R(ax, ay) g - g (3,) for a tilt."""
+        return tilt_columns(p, g)[0] if self.physical == "tilt" else np.asarray(p, dtype=float)
+
+    def bounds(self, n: int):
+        """(lower, upper) (size(n),) of the parameters, +-inf where unbounded."""
+        k = n if self.per_joint else 1
+        lo = np.repeat(np.asarray(self.lower if self.lower is not None else [-np.inf] * len(self.params), float), k)
+        hi = np.repeat(np.asarray(self.upper if self.upper is not None else [np.inf] * len(self.params), float), k)
+        return lo, hi
+
+    def labels(self, n: int) -> tuple:
+        """A name per parameter: 'I_a J2' for a per-joint effect, else the parameter's name."""
+        if not self.per_joint:
+            return tuple(self.params)
+        return tuple(f"{p} J{j + 1}" for p in self.params for j in range(n))
 
     def block(self, s: Signals, nl=None) -> np.ndarray:
         """The checked regressor block (T, n, k), filtered like the log's torques if self.smooth. A per-joint effect
@@ -148,7 +186,7 @@ class Effect:
         Y = np.asarray(self.regressor(s, nl) if self.nonlinear else self.regressor(s), dtype=float)
         T, n = len(s), s.n
         diagonal = self.per_joint and len(self.params) == 1 and Y.shape == (T, n)
-        want = (T, n) if diagonal else (T, n, self.size(n))
+        want = (T, n) if diagonal else (T, n, self.columns(n))
         if Y.shape != want:
             raise ValueError(f"effect {self.name!r}: regressor expected shape {want}, found {Y.shape}")
         if not np.all(np.isfinite(Y)):
@@ -163,7 +201,8 @@ class Effect:
         k = n if self.per_joint else 1
         for i, (name, unit) in enumerate(zip(self.params, self.units)):
             vals = p[i * k:(i + 1) * k]
-            lines.append(f"{name} = {_fmt(vals)} {unit}")
+            deg = f" ({_fmt(np.degrees(vals))} deg)" if unit == "rad" else ""
+            lines.append(f"{name} = {_fmt(vals)} {unit}{deg}")
         if self.nonlinear and nl is not None:
             for i, (name, unit) in enumerate(zip(self.nonlinear[0], self.nonlinear[1])):
                 lines.append(f"{name} = {_fmt(np.asarray(nl)[:, i])} {unit}")
@@ -173,13 +212,30 @@ class Effect:
 
 
 def custom(name: str, explanation: str, regressor: Callable, params, units, per_joint_params: bool = False,
-           signal: str = "") -> Effect:
+           signal: str = "", lower=None, upper=None) -> Effect:
     """A user-defined effect from one regressor function signals -> (T, n, k) block (or, with per_joint_params and
-    one parameter name, its per-joint signal (T, n)); signals offers t, q, dq, ddq, robot, gravity, motion, ..."""
+    one parameter name, its per-joint signal (T, n)); signals offers t, q, dq, ddq, robot, gravity, motion, ...
+    lower, upper: physical bounds, one per parameter name (None = unbounded); the fit keeps to them."""
     params, units = tuple(params), tuple(units)
     if len(params) != len(units):
         raise ValueError(f"units: expected one unit per parameter ({len(params)}), found {len(units)}")
-    return Effect(name, explanation, regressor, params, units, per_joint=per_joint_params, signal=signal)
+    return Effect(name, explanation, regressor, params, units, per_joint=per_joint_params, signal=signal,
+                  lower=None if lower is None else tuple(lower), upper=None if upper is None else tuple(upper))
+
+
+def segments(effects, n: int, g, relax=()) -> list:
+    """The physical.Segment of each effect's columns, in order (for physical.solve_physical); the effects named in
+    relax get none of their constraints (a tilt then fits all of dg)."""
+    out, i0 = [], 0
+    for e in effects:
+        k = e.columns(n)
+        if e.name in relax:
+            out.append(Segment(e.name, i0, i0 + k, np.full(k, -np.inf), np.full(k, np.inf)))
+        else:
+            lo, hi = e.bounds(n)
+            out.append(Segment(e.name, i0, i0 + k, lo, hi, e.physical, np.asarray(g, float), e.labels(n)))
+        i0 += k
+    return out
 
 
 def _fmt(v):
@@ -187,84 +243,47 @@ def _fmt(v):
     return f"{v[0]:.4g}" if len(v) == 1 else "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
 
 
-# --- the Gaz sigmoid friction: tau_f = p1 / (1 + exp(-p2 (dq + p3))) - p1 / (1 + exp(-p2 p3)) -------------
-def _sigmoid_shape(dq, p2, p3):
-    """(T, n) shape functions of the Gaz friction for p2, p3 (n,): tau_f = p1 * shape, shape(0) = 0."""
-    return expit(p2 * (dq + p3)) - expit(p2 * p3)
-
-
-def _fit_sigmoid(s: Signals, z: np.ndarray, nl: np.ndarray, cfg: EffectConfig = EffectConfig()) -> np.ndarray:
-    """(p2, p3) per joint (n, 2) fitting z (T, n), the residual to explain, by z_j ~ p1 shape(dq_j; p2, p3) + c_j.
-    The nuisance constant c_j keeps a sensor offset from bending the shape (an offset is its own effect). Per joint,
-    scipy.optimize.least_squares (Levenberg-Marquardt, analytic Jacobian) over x = (p1, log p2, atanh(p3 / b), c),
-    so p3 stays inside +-b, from the best p2 of a coarse grid (or the previous value)."""
-    step = max(1, len(s) // cfg.sigmoid_rows)
-    dq, z = s.dq[::step], z[::step]
-    n, b = dq.shape[1], max(abs(cfg.sigmoid_p3[0]), abs(cfg.sigmoid_p3[1]))
-    out = np.empty((n, 2))
-    for j in range(n):
-        v, zj = dq[:, j], z[:, j]
-
-        def residual(x):
-            return zj - x[0] * _sigmoid_shape(v, np.exp(min(x[1], 30.0)), b * np.tanh(x[2])) - x[3]
-
-        def jacobian(x):
-            p2, p3 = np.exp(min(x[1], 30.0)), b * np.tanh(x[2])
-            sg, s0 = expit(p2 * (v + p3)), expit(p2 * p3)
-            d, d0 = sg * (1 - sg), s0 * (1 - s0)
-            dp3 = x[0] * p2 * (d - d0) * b * (1 - np.tanh(x[2]) ** 2)
-            return -np.stack([sg - s0, x[0] * p2 * (d * (v + p3) - d0 * p3), dp3, np.ones_like(v)], axis=1)
-
-        starts = [(p2, 0.0) for p2 in (2.0, 5.0, 10.0, 20.0, 50.0)] + [(nl[j, 0], np.clip(nl[j, 1], -0.9 * b, 0.9 * b))]
-        best = None
-        for p2, p3 in starts:                # p1, c in closed form for each start
-            A = np.stack([_sigmoid_shape(v, p2, p3), np.ones_like(v)], axis=1)
-            (p1, c), err = np.linalg.lstsq(A, zj, rcond=None)[:2]
-            err = err[0] if len(err) else np.inf
-            if best is None or err < best[0]:
-                best = (err, np.array([p1, np.log(p2), np.arctanh(p3 / b), c]))
-        x = best[1]
-        if best[0] < 0.99 * np.sum((zj - zj.mean()) ** 2):     # a shape that explains nothing has no optimum
-            x = least_squares(residual, x, jac=jacobian, method="lm", xtol=1e-6, ftol=1e-6, max_nfev=50).x
-        out[j] = np.clip(np.exp(x[1]), *cfg.sigmoid_p2), b * np.tanh(x[2])
-    return out
-
-
 def library(config: EffectConfig = EffectConfig()) -> dict:
-    """The built-in effects by name (regressors in the tau_J sign: the torque the drives add for the effect)."""
-    w = config.coulomb_width
-
-    def tilt(s):                             # dg = (ax e_x + ay e_y) x g, tau = G(q; dg) = -W dg
-        W, g = s.gravity_map, s.robot.g
-        return -np.stack([W @ np.cross([1.0, 0, 0], g), W @ np.cross([0, 1.0, 0], g)], axis=2)
-
+    """The built-in effects by name (regressors in the tau_J sign: the torque the drives add for the effect), each
+    with its physical bounds: scales, masses, inertias and friction coefficients are >= 0."""
+    c = config
+    body = ("m", "m_cx", "m_cy", "m_cz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
     effects = [
         Effect("gravity", "the arm's own weight, G(q) of the nominal link masses and CoMs, scaled by k_G",
-               lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False),
+               lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False, lower=(0.0,)),
         Effect("motion", "the arm's inertial, Coriolis and centrifugal torques M(q) ddq + C(q, dq) dq, scaled by k_M",
-               lambda s: s.motion[:, :, None], ("k_M",), ("(1 = nominal)",), nominal=1.0, signal="ddq", smooth=False),
+               lambda s: s.motion[:, :, None], ("k_M",), ("(1 = nominal)",), nominal=1.0, signal="ddq", smooth=False,
+               lower=(0.0,)),
         Effect("payload", "a load at the end-effector whose weight pulls on the arm (static: Eqs. 4-5, "
                "phi = (m, m r), r in the ee frame)", lambda s: -s.payload, ("m", "m_rx", "m_ry", "m_rz"),
-               ("kg", "kg m", "kg m", "kg m"), payload=True, smooth=False),
+               ("kg", "kg m", "kg m", "kg m"), payload=True, smooth=False, lower=(0.0, -np.inf, -np.inf, -np.inf)),
         Effect("rigid_payload", "a rigid load at the end-effector: its weight and its inertia under motion "
-               "(Newton-Euler; inertia about the ee origin)", lambda s: -s.body,
-               ("m", "m_cx", "m_cy", "m_cz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz"),
-               ("kg", "kg m", "kg m", "kg m") + ("kg m^2",) * 6, payload=True, smooth=False),
+               "(Newton-Euler; inertia about the ee origin; pseudo-inertia positive semidefinite)", lambda s: -s.body,
+               body, ("kg", "kg m", "kg m", "kg m") + ("kg m^2",) * 6, payload=True, smooth=False,
+               physical="rigid_body"),
         Effect("viscous", "friction growing in proportion to joint speed (lubricant shear in the gears), fv dq",
-               lambda s: s.dq, ("fv",), ("Nm s/rad",), per_joint=True, signal="dq", smooth=False),
-        Effect("coulomb", f"sliding friction of constant size opposing motion, fc sign(dq) (tanh(dq / {w} rad/s))",
-               lambda s: np.tanh(s.dq / w), ("fc",), ("Nm",), per_joint=True, signal="dq"),
+               lambda s: s.dq, ("fv",), ("Nm s/rad",), per_joint=True, signal="dq", smooth=False, lower=(0.0,)),
+        Effect("coulomb", "sliding friction of constant size opposing motion, fc sign(dq), smoothed as "
+               "fc tanh(dq / w) with the width w fitted per joint", lambda s, nl: np.tanh(s.dq / nl[:, 0]),
+               ("fc",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,),
+               nonlinear=(("w",), ("rad/s",), (c.coulomb_width,)),
+               fit_nonlinear=lambda s, rows, z, nl: fit_coulomb(s, rows, z, nl, c.coulomb_widths, c.coulomb_rows)),
         Effect("sigmoid", "joint friction as a sigmoid of speed (Gaz et al. 2019): p1/(1+exp(-p2(dq+p3))) - "
-               "p1/(1+exp(-p2 p3))", lambda s, nl: _sigmoid_shape(s.dq, nl[:, 0], nl[:, 1]),
-               ("p1",), ("Nm",), per_joint=True, signal="dq",
+               "p1/(1+exp(-p2 p3))", lambda s, nl: sigmoid_shape(s.dq, nl[:, 0], nl[:, 1]),
+               ("p1",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,),
                nonlinear=(("p2", "p3"), ("s/rad", "rad/s"), (10.0, 0.0)),
-               fit_nonlinear=lambda s, z, nl: _fit_sigmoid(s, z, nl, config)),
+               fit_nonlinear=lambda s, rows, z, nl: fit_sigmoid(s, rows, z, nl, c.sigmoid_p2, c.sigmoid_p3,
+                                                                c.sigmoid_rows)),
         Effect("offset", "a constant bias of each joint torque sensor (calibration drift)",
                lambda s: np.ones_like(s.q), ("tau_0",), ("Nm",), per_joint=True, signal="t", smooth=False),
         Effect("rotor", "the motor rotor's inertia seen through the gearbox, I_a ddq, missing from a link-only model",
-               lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False),
-        Effect("tilt", "the base is not level: gravity tilted by ax about world x and ay about world y "
-               "(small angles; G(q; dg), dg = (ax e_x + ay e_y) x g)", tilt, ("ax", "ay"), ("rad", "rad"),
-               smooth=False),
+               lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False, lower=(0.0,)),
+        Effect("tilt", "the base is not level: gravity rotated by ax about world x, then ay about world y, "
+               "G(q; g') - G(q; g) = -W dg with dg = Ry(ay) Rx(ax) g - g (exact)",
+               lambda s: -s.gravity_map, ("ax", "ay"), ("rad", "rad"), smooth=False, physical="tilt",
+               lower=(-c.tilt_max,) * 2, upper=(c.tilt_max,) * 2),
     ]
     return {e.name: e for e in effects}
+
+
+_sigmoid_shape = sigmoid_shape           # the name benchmarks import

@@ -1,11 +1,12 @@
 """Held-out (2-fold, interleaved blocks) least-squares fits of sets of effects for model diagnosis: per-block,
-per-joint normal equations computed once, so every candidate set is scored by small solves, never by refitting."""
+per-joint normal equations computed once, so every candidate set is scored by small solves, never by refitting; each
+fold's fit keeps to the effects' physical constraints (physical.solve_physical), as the whole-log fit does."""
 from __future__ import annotations
 
 import numpy as np
 
-from diagnosis.effect_model import solve
-from diagnosis.effects import Signals
+from diagnosis.effects import Signals, segments
+from diagnosis.physical import solve, solve_physical, violations
 
 
 class BlockGrams:
@@ -14,15 +15,16 @@ class BlockGrams:
 
     y (T, n) is the target; block (T,) the block index of each row (0 .. nb-1, contiguous in time). Groups are
     regressor blocks (T, n, k) added under a key and stored per joint with only their non-zero columns (a per-joint
-    effect keeps one column per joint); pair products are computed on first use and cached."""
+    effect keeps one column per joint); pair products are computed on first use and cached. A group added with its
+    Effect is fitted under that effect's constraints (g (3,): the gravity a tilt rotates)."""
 
-    def __init__(self, y: np.ndarray, block: np.ndarray):
+    def __init__(self, y: np.ndarray, block: np.ndarray, g=(0.0, 0.0, -9.81)):
         self.nb, self.L = int(block.max()) + 1, int(np.bincount(block).max())
         self.block, self.pos = block, np.arange(len(block)) - np.searchsorted(block, block)   # row within its block
         self.T, self.n = y.shape
         self.y = self._pad(y)                                      # (nb, L, n)
         self.yy = np.einsum("blj,blj->bj", self.y, self.y)         # (nb, n)
-        self.groups, self._pair, self._gy = {}, {}, {}
+        self.groups, self._pair, self._gy, self.effects, self.g = {}, {}, {}, {}, np.asarray(g, dtype=float)
 
     def _pad(self, A):
         """(T, ...) rows -> (nb, L, ...), zero rows where a block is shorter than L."""
@@ -30,7 +32,9 @@ class BlockGrams:
         out[self.block, self.pos] = A
         return out
 
-    def add(self, key, A: np.ndarray):
+    def add(self, key, A: np.ndarray, effect=None):
+        if effect is not None:
+            self.effects[key] = effect
         if key not in self.groups:
             cols = [np.flatnonzero(np.any(A[:, j, :] != 0, axis=0)) for j in range(self.n)]
             self.groups[key] = (A.shape[2], [(c, self._pad(A[:, j][:, c])) for j, c in enumerate(cols)])
@@ -71,18 +75,28 @@ class BlockGrams:
                 G[:, :, off[j]:off[j + 1], off[i]:off[i + 1]] = P.transpose(0, 1, 3, 2)
         return G, g
 
-    def heldout(self, keys_per_fold):
+    def heldout(self, keys_per_fold, physical: bool = True, relax=()):
         """2-fold cross-validation: fold f fits on blocks b % 2 == f with groups keys_per_fold[f] and predicts the other
-        blocks. Returns (sse (nb, n): held-out squared error per block and joint, params [p_0, p_1], rank)."""
-        sse, params, rank = np.zeros((self.nb, self.n)), [], []
+        blocks; physical: under the constraints of the groups' effects (groups added without one are free), except
+        those of the effects named in relax. Returns
+        (sse (nb, n): held-out squared error per block and joint, params [p_0, p_1] (columns), infos [info_0, info_1]
+        of the solves (rank, constrained, params per group, violations))."""
+        sse, params, infos = np.zeros((self.nb, self.n)), [], []
         for f in (0, 1):
-            G, g = self.assemble(keys_per_fold[f])
+            keys = keys_per_fold[f]
+            G, g = self.assemble(keys)
             train, test = np.arange(f, self.nb, 2), np.arange(1 - f, self.nb, 2)
-            p, info = solve(G[train].sum(axis=(0, 1)), g[train].sum(axis=(0, 1)))
+            Gt, gt = G[train].sum(axis=(0, 1)), g[train].sum(axis=(0, 1))
+            if physical and all(k in self.effects for k in keys):
+                p, info = solve_physical(Gt, gt, segments([self.effects[k] for k in keys], self.n, self.g, relax))
+            else:
+                p, info = solve(Gt, gt)
+                k0 = np.cumsum([0] + [self.size(k) for k in keys])
+                info.update(constrained=False, violations={}, params=[p[a:b] for a, b in zip(k0[:-1], k0[1:])])
             params.append(p)
-            rank.append(info["rank"])
+            infos.append(info)
             sse[test] = self.yy[test] - 2 * g[test] @ p + np.einsum("bjk,k->bj", G[test] @ p, p)
-        return np.maximum(sse, 0.0), params, min(rank)
+        return np.maximum(sse, 0.0), params, infos
 
     def predict(self, keys, p) -> np.ndarray:
         """A p (T, n) for groups `keys` and parameters p."""
@@ -145,7 +159,7 @@ class Selection:
 
     def __init__(self, s: Signals, y, block, config):
         self.s, self.y, self.block, self.config = s, y, block, config
-        self.grams = BlockGrams(y, block)
+        self.grams = BlockGrams(y, block, s.robot.g)
         self.keys, self.nl, self.tag = [[], []], {}, 0
         self.sse, self.params = self.grams.heldout(self.keys)[:2]
 
@@ -153,16 +167,15 @@ class Selection:
         """Key of the effect's columns for a fold; nonlinear effects are fitted on that fold's training rows."""
         if not e.nonlinear:
             if e.name not in self.grams.groups:
-                self.grams.add(e.name, e.block(self.s))
+                self.grams.add(e.name, e.block(self.s), e)
             return e.name
-        rows = self.block % 2 == fold
+        rows = np.flatnonzero(self.block % 2 == fold)
         z = (self.y - self.grams.predict(self.keys[fold], self.params[fold]))[rows]
-        sub = Signals(self.s.log.rows(rows), self.s.robot, self.s.batch)
         nl0 = self.nl.get((e.name, fold), np.tile(np.asarray(e.nonlinear[2], dtype=float), (self.s.n, 1)))
-        nl = self.nl[(e.name, fold)] = e.fit_nonlinear(sub, z, nl0)          # warm start from the last round
+        nl = self.nl[(e.name, fold)] = e.fit_nonlinear(self.s, rows, z, nl0)     # warm start from the last round
         self.tag += 1
         key = (e.name, fold, self.tag)
-        self.grams.add(key, e.block(self.s, nl))
+        self.grams.add(key, e.block(self.s, nl), e)
         return key
 
     def extend(self, e):
@@ -171,13 +184,13 @@ class Selection:
 
     def try_effect(self, e):
         keys = [self._group(e, f) for f in (0, 1)]
-        sse, params, _ = self.grams.heldout([self.keys[f] + [keys[f]] for f in (0, 1)])
+        trial = [self.keys[f] + [keys[f]] for f in (0, 1)]
+        sse, params, infos = self.grams.heldout(trial)
         v = verdict(self.sse, sse, self.config, len(self.s))
         n = self.s.n
         k = e.size(n) + (len(e.nonlinear[0]) * n if e.nonlinear else 0)
         explained = 1 - sse.sum(axis=0) / np.maximum(self.sse.sum(axis=0), 1e-300)
-        kc = self.grams.size(keys[0])
-        p = 0.5 * (params[0][-kc:] + params[1][-kc:])                       # the two folds' fits, averaged
+        p = 0.5 * (infos[0]["params"][-1] + infos[1]["params"][-1])        # the two folds' fits, averaged
         nl = 0.5 * (self.nl[(e.name, 0)] + self.nl[(e.name, 1)]) if e.nonlinear else None
         return dict(effect=e.name, obj=e, keys=keys, sse=sse, fold_params=params, k=k,
                     explained=float(explained.mean()), explained_joints=explained,
@@ -185,7 +198,25 @@ class Selection:
                     worse=[int(j) + 1 for j in np.flatnonzero(v["worse"])], rms_change=-v["drop"],
                     total_change=-v["total_drop"], total_t=v["total_t"],
                     rms_after=np.sqrt(sse.sum(axis=0) / len(self.s)), drop=v["drop"], t=v["t"],
-                    params=e.describe(p, nl, n))
+                    params=e.describe(p, nl, n), asked=self._asked(e, trial, sse, infos))
+
+    def _asked(self, e, trial, sse, infos):
+        """What the data ask of e beyond its physical constraints, or None: refit with e's constraints dropped (the
+        accepted effects keep theirs); if that beats the constrained fit significantly (significance()) on some joint,
+        the violations [(label, value)] found in both folds (values averaged) and the joints (1-based) it helps."""
+        if not any(info["constrained"] for info in infos):
+            return None
+        sse_free, _, free = self.grams.heldout(trial, relax={e.name})
+        better = significance(sse, sse_free, self.config, len(self.s))[2]
+        if not better.any():
+            return None
+        seg = segments([e], self.s.n, self.s.robot.g)[0]
+        folds = [dict(violations(seg, free[f]["params"][-1])) for f in (0, 1)]
+        viol = [(k, 0.5 * (v + folds[1][k])) for k, v in folds[0].items() if k in folds[1]]
+        if not viol:
+            return None
+        return dict(effect=e.name, violations=viol, joints=[int(j) + 1 for j in np.flatnonzero(better)],
+                    rms_gain=1 - np.sqrt(sse_free.sum(axis=0) / np.maximum(sse.sum(axis=0), 1e-300)))
 
     def accept(self, row):
         self.keys = [self.keys[f] + [row["keys"][f]] for f in (0, 1)]

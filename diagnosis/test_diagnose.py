@@ -2,6 +2,7 @@
 import copy
 import dataclasses
 import functools
+import importlib.util
 import json
 
 import numpy as np
@@ -55,7 +56,7 @@ def test_batch_dynamics_matches_mujoco_inverse_dynamics_and_regressors():
 
 
 def test_tilt_regressor_matches_gravity_of_a_tilted_base():
-    ax, ay = 0.004, -0.003
+    ax, ay = 0.07, -0.05                                       # 4.0 and 2.9 deg: exact, not small-angle
     tilted = copy.deepcopy(ROBOT.model)
     c, s = np.cos, np.sin
     Rx = np.array([[1, 0, 0], [0, c(ax), -s(ax)], [0, s(ax), c(ax)]])
@@ -64,8 +65,9 @@ def test_tilt_regressor_matches_gravity_of_a_tilted_base():
     q = np.array([0, -0.3, 0, -2.0, 0, 1.9, 0.8]) + 0.5 * np.random.default_rng(1).normal(size=(10, 7))
     truth = Robot(tilted).gravity(q) - ROBOT.gravity(q)
     log = Log(np.arange(10.0), q, 0 * q, 0 * q, None, 0 * q)
-    Y = Model(ROBOT).effect("tilt").block(Signals(log, ROBOT))
-    np.testing.assert_allclose(Y @ [ax, ay], truth, atol=2e-3 * np.abs(truth).max())   # small-angle: O(angle)
+    tilt = Model(ROBOT).effect("tilt")
+    Y = tilt.block(Signals(log, ROBOT))
+    np.testing.assert_allclose(Y @ tilt.coef([ax, ay], ROBOT.g), truth, atol=1e-9 * np.abs(truth).max())
 
 
 # --- logs -----------------------------------------------------------------------------------------------
@@ -184,6 +186,9 @@ def test_diagnose_ranks_the_hidden_effect_first_and_cuts_its_held_out_error(effe
     assert d.selected == [effect], d.selected
     before, after = d.rms, d.steps[0]["rms_after"]
     affected = before >= 2 * FLOOR
+    if effect == "viscous":              # Gaz's fv of J6 is negative: the physical fit holds it at 0 and says so
+        affected[5] = False
+        assert d.model.params["viscous"][5] == 0 and d.model.violations["viscous"][0][0] == "fv J6"
     assert affected.any()
     reached = (after <= before / 3) | (after <= 1.5 * FLOOR)           # 3x smaller or down to the noise floor
     assert reached[affected].all(), (before, after, FLOOR)
@@ -269,8 +274,7 @@ def test_cli_json_has_rms_ranking_and_after(tmp_path, capsys):
 def test_cli_plot_needs_matplotlib_or_writes_the_file(tmp_path, capsys):
     save_log(tmp_path / "v.npz", recorded("viscous")[0])
     code = D.main([str(tmp_path / "v.npz"), "--plot", str(tmp_path / "v.png")])
-    try:
-        import matplotlib  # noqa: F401
+    if importlib.util.find_spec("matplotlib") is not None:
         assert code == 0 and (tmp_path / "v.png").stat().st_size > 0
-    except ImportError:
+    else:
         assert code == 2 and "matplotlib" in capsys.readouterr().err
