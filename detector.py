@@ -232,15 +232,16 @@ class LevelMap:
     def __len__(self):
         return len(self.q)
 
-    def _nearest(self, q):
+    def _nearest(self, q, anywhere=False):
         if not self.q:
             return None
         d = np.abs(np.asarray(self.q) - q).max(axis=1)
         i = int(np.argmin(d))
-        return i if d[i] <= self.tolerance else None
+        return i if anywhere or d[i] <= self.tolerance else None
 
-    def at(self, q):
-        i = self._nearest(q)
+    def at(self, q, anywhere=False):
+        """The level stored nearest to q within `tolerance` (anywhere: whatever the distance), or None."""
+        i = self._nearest(q, anywhere)
         return None if i is None else self.level[i]
 
     def put(self, q, level):
@@ -273,6 +274,32 @@ class Levels:
             self.rejected = None
         return back
 
+    def judge(self, q, level, Y, mass, gates, far):
+        """What a steady residual `level` (n,) at pose q means (Y (n, 4): the payload regressor there, mass: the one
+        compensated now, gates: (first, later) explained shares for payload_like): None when it needs nothing
+        (explained here: the level is followed; judged before; no payload), "new" at a pose never seen (taken as
+        explained) unless the level is more than `far` [Nm] from the nearest level known (no sensor bias reaches
+        that: a change missed while a push moved the arm), else (reference, kind) to estimate against: kind "first"
+        (the very first level, against no payload), "level" (the level explained here) or "far"."""
+        near = lambda a, b: b is not None and np.linalg.norm(a - b) <= self.threshold
+        trusted, first = self.explained.at(q), len(self.explained) == 0
+        if near(level, self.muted.at(q)):
+            return None                                                # judged before: not a payload
+        kind = "first" if first else "level"
+        if not first and trusted is None:
+            trusted, kind = self.explained.at(q, anywhere=True), "far"
+            if np.linalg.norm(level - trusted) <= far:
+                self.explained.put(q, level)
+                return "new"
+        elif not first and near(level, trusted):
+            self.explained.put(q, level)                               # explained: follow the slow bias drift
+            return None
+        reference = np.zeros(len(level)) if first else trusted
+        if not payload_like(Y, level - reference, mass, gates[0] if first else gates[1]):
+            (self.explained if first else self.muted).put(q, level)    # the bias; or e.g. a person holding the arm
+            return None
+        return reference, kind
+
     def bias(self, R_ref, q_ref):
         """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
         samples R_ref (T, n) taken at pose q_ref, unless the estimate did not explain them (a push, a change it
@@ -287,10 +314,11 @@ class Levels:
 
 def payload_like(Y, d, mass, gate) -> bool:
     """Whether a torque change d (n,) at a pose with payload regressor Y (n, 4) looks like a payload change: least
-    squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) >= -0.05 kg."""
+    squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) >= -max(0.05 kg,
+    15 % of `mass`) (a removal may read a little heavier than the estimate it undoes)."""
     dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
     explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
-    return bool(explained >= gate and mass + dphi[0] >= -0.05)
+    return bool(explained >= gate and mass + dphi[0] >= -max(0.05, 0.15 * mass))
 
 
 def safe_theta(new, old, max_mass):

@@ -41,6 +41,8 @@ class RMESettings:
     monitor_threshold: float = 0.3  # Nm, |mean residual - the level last explained| that counts as unexplained (0.1 kg
                                    #   moves the Panda's torques by ~0.5 Nm; the realistic bias drifts < 0.1 Nm at rest)
     monitor_window: int = 300      # samples (300 ms): the arm calm and the residual level steady this long
+    monitor_far: float = 2.0       # Nm: at a pose never seen, a level this far from the nearest known one is no
+                                   #   sensor bias (a few tenths of a Nm per joint) but a change missed (e.g. in a push)
     monitor_speed: float = 0.02    # rad/s: every joint slower than this counts as calm for the monitor (friction
                                    #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
     first_explained: float = 0.97  # the monitor's gate at the first rest, against no payload at all: real loads
@@ -65,6 +67,7 @@ class RMESettings:
                   ("min_explained", self.min_explained, self.min_explained <= 1, "a share <= 1"),
                   ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
                   ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
+                  ("monitor_far", self.monitor_far, self.monitor_far > self.monitor_threshold, "a torque > the threshold"),
                   ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
                    f"{self.window}..{keep} samples"),
                   ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
@@ -104,7 +107,7 @@ class RME:
                  rng: np.random.Generator | None = None, correction=None, executor=None):
         self.robot = Robot.panda() if robot is None else robot
         self.settings, self.correction, self.executor = settings, correction, executor
-        self._job, self._queued = None, None           # (future, request) in flight; a request waiting for it
+        self._job, self._queued = None, None           # (future, request, sample) in flight; a request waiting
         self.rng = np.random.default_rng(0) if rng is None else rng
         self.net = self._load_network(weights) if settings.use_network else None
         if not isinstance(settings, RMESettings):
@@ -219,8 +222,8 @@ class RME:
         speed = np.abs(dq).max()
         self._still = self._still + 1 if speed < s.rest_speed else 0
         self._calm = self._calm + 1 if speed < s.monitor_speed else 0
-        if self._job is not None and self._job[0].done():              # only polled: the loop never waits
-            (future, request), self._job = self._job, None
+        if self._job is not None and self._job[2] < self._k and self._job[0].done():   # polled from the next sample on
+            (future, request, _), self._job = self._job, None
             self._judge(*request, *future.result())
         idle = self._pending is None and self._job is None and self._queued is None
         if self._refine is not None and idle:
@@ -282,8 +285,9 @@ class RME:
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
-                self._refine = dict(bias=bias, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked)  # levels: at rest
+                self._refine = dict(bias=bias, q=q_ref, before=before, deadline=self._k + int(s.refine_within * s.rate))
+        self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked,
+                     level=(q_ref, bias))                 # what the compensation should leave: the level before
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -291,49 +295,39 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None)
+        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None,
+                     level=(r["q"], r["bias"]))
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
         the level explained before at this pose. The very first level is estimated against no payload at all (RME
         assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
-        taken as explained."""
+        taken as explained, unless it is monitor_far from the nearest level known (detector.Levels.judge)."""
         s = self.settings
         last = (self._k - s.monitor_window + np.arange(s.monitor_window)) % len(self._r)   # no reorder, no correction
         level, recent = self._r[last].mean(axis=0), self._r[last[-(s.monitor_window // 3):]].mean(axis=0)
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
-        trusted, muted, first = self._lv.explained.at(q), self._lv.muted.at(q), len(self._lv.explained) == 0
-        near = lambda a, b: b is not None and np.linalg.norm(a - b) <= s.monitor_threshold
-        if near(level, muted):
-            return                                                     # judged before: not a payload
-        if not first and (trusted is None or near(level, trusted)):
-            self._lv.explained.put(q, level)                                 # explained: follow the slow bias drift
-            if trusted is None and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
-                Q, TAU, _ = self._buffer()       # the same payload seen from a new side: combine the evidence
-                same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
-                Yq, phi = self.robot.payload_regressor(q), self._phi.copy()     # the level it leaves here:
-                then = lambda e: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
-                    e.mean, self.theta, s.max_mass)) - phi))
-                self._change(Q[-s.window:], TAU[-s.window:], self._evidence[0][2], self.theta, "accumulated", then,
-                             same, evidence=self._evidence)     # referred like the first window kept
-                self._calm = 0
+        verdict = self._lv.judge(q, level, self.robot.payload_regressor(self._q[last[-1]]), self._phi[0],
+                                 (s.first_explained, s.min_explained), s.monitor_far)
+        if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
+            Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
+            same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
+            self._change(Q[-s.window:], TAU[-s.window:], self._evidence[0][2], self.theta, "accumulated",
+                         self._leaves(q, level), same, evidence=self._evidence)   # referred like the first window
+            self._calm = 0
+        if verdict is None or verdict == "new":
             return
-        reference, gate = (np.zeros(self.robot.n), s.first_explained) if first else (trusted, s.min_explained)
-        if not payload_like(self.robot.payload_regressor(self._q[last[-1]]), level - reference, self._phi[0], gate):
-            if first:
-                self._lv.explained.put(q, level)                             # no payload: the level is the bias
-            else:
-                self._lv.muted.put(q, level)                              # e.g. a person holding the arm aside
-            return
+        (reference, kind), first = verdict, verdict[1] == "first"
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first:                                # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= s.first_explained
-        else:                                    # the new estimate must make the level consistent again
-            gap = np.linalg.norm(level - trusted)
+        else:                                    # the new estimate must make the level consistent again (far from
+            gap = np.linalg.norm(level - reference)          # any pose seen: explain 3/4 of the gap, bias aside)
+            tol = 0.25 * gap if kind == "far" else min(s.monitor_threshold, 0.5 * gap)
             accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(safe_theta(
-                e.mean, self.theta, s.max_mass))).mean(axis=0)) <= min(s.monitor_threshold, 0.5 * gap)
+                e.mean, self.theta, s.max_mass))).mean(axis=0)) <= tol
         def then(e):
             if e.accepted and first:                                   # what the payload leaves is the bias
                 Y = self.robot.payload_regressor(Q[-s.window:])
@@ -341,11 +335,20 @@ class RME:
             elif first:
                 self._lv.explained.put(q, level)                             # no payload: the level is the bias
                 self.history.pop()                                     # (establishing it is not an estimate)
+            elif kind == "far":
+                self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
             elif not e.accepted:
                 self._lv.muted.put(q, level)
         self._change(Q[-s.window:], TAU[-s.window:], reference, self.theta, "monitor", then, accept,
-                     level=None if first else (q, trusted))
+                     level=None if kind != "level" else (q, reference))
         self._calm = 0
+
+    def _leaves(self, q, level):
+        """then(e) for an estimate at pose q, where the residual level is `level` now: once accepted, the level the new
+        compensation leaves there is the explained one."""
+        Yq, phi = self.robot.payload_regressor(q), self._phi.copy()
+        return lambda e: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
+            e.mean, self.theta, self.settings.max_mass)) - phi))
 
     def _turned(self, q) -> bool:
         """Whether gravity, seen from the ee at pose q, has turned by accumulate_angle from every window kept."""
@@ -363,7 +366,7 @@ class RME:
         if self.executor is None:
             self._judge(*request, *self._estimate(*args))
         else:
-            self._job = (self.executor.submit(self._estimate, *args), request)
+            self._job = (self.executor.submit(self._estimate, *args), request, self._k)
 
     def _judge(self, k, Qw, Tw, bias, theta_before, kind, then, accept, level, e, Y):
         """Judge the estimate e of the window requested at sample k against the payload before the change, schedule
