@@ -8,7 +8,7 @@ import pytest
 
 import cpic
 from experiments.qp_bench import quadprog_solve, random_problem
-from qp import dual_active_set, solve_qp
+from qp import dual_active_set, dual_active_set_from_inverse, solve_qp
 
 
 # --- QP solver -----------------------------------------------------------------------------------------------
@@ -287,3 +287,36 @@ def test_qp_never_reports_optimal_for_an_answer_that_violates_a_constraint():
             assert (s >= -1e-9 * scale).all(), (A, b, g, x)
         verdicts.append(info.status)
     assert "optimal" not in verdicts[:2] and "optimal" in verdicts    # the check is not vacuous
+
+
+def test_qp_drop_steps_reach_the_enumerated_optimum():
+    """Problems whose cold solve drops rows (partial steps: iterations > adds), the path whose rank-one downdate
+    is read off the stored rows of -N*: the optimum equals the exhaustive active-set search's, KKT holds."""
+    rng = np.random.default_rng(21)
+    dropped = 0
+    while dropped < 25:
+        H, g, A, b = random_problem(rng, m_range=(6, 12))
+        x, info = solve_qp(H, g, A, b)
+        if info.iterations == len(info.active):
+            continue
+        dropped += 1
+        x_ref = enumeration_reference(H, g, A, b)
+        f_ref = objective(H, g, x_ref)
+        assert info.status == "optimal" and abs(objective(H, g, x) - f_ref) <= 1e-9 * max(1.0, abs(f_ref))
+        assert np.abs(x - x_ref).max() <= 1e-8 * max(1.0, np.abs(x_ref).max())
+        assert kkt_violation(H, g, A, b, x, info.multipliers) <= 1e-8
+
+
+def test_dual_active_set_from_inverse_matches_solve_qp_from_any_warm_start():
+    """CPIC's entry point: H^-1 given; a right warm start is answered by one solve, a wrong or empty one falls
+    back to the full method (on a Cholesky factor of H^-1); all give solve_qp's x and multipliers."""
+    rng = np.random.default_rng(22)
+    for _ in range(60):
+        H, g, A, b = random_problem(rng)
+        x_ref, info = solve_qp(H, g, A, b)
+        Hinv = np.linalg.inv(H)
+        for warm in ([], info.active.tolist(), rng.permutation(len(b))[:5].tolist()):
+            x, status, it, active, mult = dual_active_set_from_inverse(0.5 * (Hinv + Hinv.T), g, A, b, warm, 200)
+            assert status == "optimal" and np.abs(x - x_ref).max() <= 1e-9 * max(1.0, np.abs(x_ref).max())
+            assert np.allclose(mult, info.multipliers, rtol=1e-7, atol=1e-9)
+            assert kkt_violation(H, g, A, b, x, mult) <= 1e-8
