@@ -264,24 +264,40 @@ def feature_regressor(robot, q, cfg=NetConfig()):
 # Weights file: parameters under their code names, normalisation stats, metadata (JSON)
 # ----------------------------------------------------------------------------------------------------
 STAT_SHAPES = {"norm.x_mean": (6,), "norm.x_std": (6,), "norm.theta_mean": (4,), "norm.theta_std": (4,)}
+RANGE_SHAPES = {"range.theta_low": (4,), "range.theta_high": (4,)}      # optional: the training range of theta
+DEFAULT_RANGE = ((0.1, -0.1, -0.1, 0.0), (2.0, 0.1, 0.1, 0.2))    # kg, m: nn_train.DataConfig's, for files without it
 
 
-def save_weights(path, params, stats, meta):
+def training_range(meta):
+    """(low (4,), high (4,)) of the payloads in meta["data"] (m_range, r_low, r_high), else DEFAULT_RANGE."""
+    data = meta.get("data", {}) if isinstance(meta, dict) else {}
+    if not all(k in data for k in ("m_range", "r_low", "r_high")):
+        return tuple(np.array(v, dtype=float) for v in DEFAULT_RANGE)
+    return (np.array([data["m_range"][0], *data["r_low"]], float), np.array([data["m_range"][1], *data["r_high"]], float))
+
+
+def save_weights(path, params, stats, meta, theta_range=None):
+    """Write the weights file; theta_range (low (4,), high (4,)): the training range, default training_range(meta)."""
     arrays = dict(flatten(params))
     arrays.update({f"norm.{k}": np.asarray(v) for k, v in stats.items()})
+    low, high = training_range(meta) if theta_range is None else theta_range
+    arrays.update({"range.theta_low": np.asarray(low, float), "range.theta_high": np.asarray(high, float)})
     np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
 
 
 def load_weights(path, net=NetConfig()):
-    """(params, stats, meta) from a weights file; ValueError naming any missing, unexpected, misshaped or
-    non-finite array, a network configuration unlike net, or a file that is not a readable .npz."""
+    """(params, stats, meta, theta_range) from a weights file (theta_range (2, 4): low, high; DEFAULT_RANGE if the
+    file has none); ValueError naming any missing, unexpected, misshaped or non-finite array, a network
+    configuration unlike net, or a file that is not a readable .npz."""
     try:
         with np.load(path, allow_pickle=False) as f:
             arrays = {k: f[k] for k in f.files}
     except Exception as err:                      # missing file, truncated zip, bad header, pickled object...
         raise ValueError(f"path: could not read weights file {str(path)!r}: {type(err).__name__}: {err}") from None
-    expected = {**param_shapes(net), **STAT_SHAPES, "meta": ()}
+    expected = {**param_shapes(net), **STAT_SHAPES, "meta": (), **RANGE_SHAPES}
     for name, shape in expected.items():
+        if name not in arrays and name in RANGE_SHAPES:
+            continue
         if name not in arrays:
             raise ValueError(f"{path}: array {name!r} missing (expected shape {shape})")
         a = arrays[name]
@@ -307,14 +323,18 @@ def load_weights(path, net=NetConfig()):
         raise ValueError(f"{path}: meta 'net' expected {asdict(net)}, found {meta.get('net')}")
     params = nest({k: arrays[k].astype(float) for k in param_shapes(net)})
     stats = {k.split(".")[1]: arrays[k].astype(float) for k in STAT_SHAPES}
-    return params, stats, meta
+    theta_range = np.array([arrays[k] if k in arrays else v for k, v in zip(RANGE_SHAPES, DEFAULT_RANGE)], float)
+    if np.any(theta_range[0] >= theta_range[1]):
+        raise ValueError(f"{path}: arrays 'range.theta_low' < 'range.theta_high' expected, found {theta_range.tolist()}")
+    return params, stats, meta, theta_range
 
 
 class MismatchNet:
     """The trained f_NN: raw pseudo-wrenches or a referred window -> theta = (m, rx, ry, rz) in kg and m."""
 
-    def __init__(self, params, stats, meta=None, net=NetConfig()):
+    def __init__(self, params, stats, meta=None, theta_range=DEFAULT_RANGE, net=NetConfig()):
         self.params, self.stats, self.meta, self.net = params, stats, meta or {}, net
+        self.theta_range = np.array(theta_range, dtype=float)             # (2, 4): low, high of the training set
 
     @classmethod
     def load(cls, path=WEIGHTS, net=NetConfig()):
@@ -344,6 +364,23 @@ class MismatchNet:
         """theta (4,) from a window q (T, n), tau_ext (T, n) already referred to the pre-change torque;
         kinematics: (R (T, 3, 3), J (T, 6, n)) of the window when the caller has them."""
         return self.predict(features(robot, q, tau_ext, self.net, kinematics))
+
+    def prior_std(self, theta, sigma_prior, R=None, margin=0.1):
+        """The prior's std (4,) for the prediction theta (4,). sigma_prior (4,) holds at the ready pose, where the ee z
+        axis is vertical: across gravity the network reads r to sp_perp = (sp_rx, sp_ry, max of the two), along
+        gravity (which no torque shows) only to sp_rz. R (3, 3), the ee orientation, gives g = R^T e_z in the ee frame;
+        r_i's variance sp_perp_i^2 (1 - g_i^2) + sp_rz^2 |g_i| sum_k |g_k| keeps the diagonal prior's std along g at
+        least sp_rz (sum_i g_i^2 / var_i <= 1 / sp_rz^2), which the plain diagonal of the turned covariance would not.
+        Each component within margin x the training range's half-width of the range's edge, or beyond it, is widened
+        to that half-width: there the network extrapolates (a saturated output looks like the edge)."""
+        sp = np.array(sigma_prior, dtype=float)
+        if R is not None:
+            g, perp = np.abs(np.asarray(R, dtype=float)[2]), np.r_[sp[1:3], sp[1:3].max()]
+            sp[1:] = np.sqrt(perp**2 * (1.0 - g**2) + sp[3] ** 2 * g * g.sum())
+        low, high = self.theta_range
+        half = 0.5 * (high - low)
+        near = (theta < low + margin * half) | (theta > high - margin * half) | ~np.isfinite(theta)
+        return np.where(near, np.maximum(sp, half), sp)
 
 
 if __name__ == "__main__":          # python nn_numpy.py train|bench: the script's entry, not part of the module

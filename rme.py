@@ -82,10 +82,10 @@ class RMESettings:
 class Estimate:
     """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""
     mean: np.ndarray               # (4,)
-    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (honest intervals;
-                                   #   the mean-field sigma under-covers the correlated m-r directions, vi.py)
+    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (vi.noise_from_window)
     cov: np.ndarray                # (4, 4) that covariance
     prior: np.ndarray              # (4,) the prior mean (network output, or zeros)
+    observed: np.ndarray           # (4,) bool: the window(s) observed it (std well below the prior's; else the prior)
     seconds: float                 # wall time of network + VI
     iterations: int
     converged: bool
@@ -173,17 +173,17 @@ class RME:
 
     def _estimate(self, q, tau):
         """Network prior and VI on checked, referred, corrected windows (or lists): (Estimate, Y or their list)."""
-        start, many = time.perf_counter(), isinstance(q, list)
-        Ys, priors = [], []
+        start, many, Ys, priors, speeds = time.perf_counter(), isinstance(q, list), [], [], []
         for qi, ti in zip(q if many else [q], tau if many else [tau]):
             _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
-            Ys.append(self.robot.payload_regressor_from(J, R))
+            Ys.append(self.robot.payload_regressor_from(J, R)), speeds.append(vi.joint_speed(qi, 1 / self.settings.rate))
             priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if self.net is not None else np.zeros(4))
         prior = np.mean(priors, axis=0)
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
-        post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng)
-        return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), time.perf_counter() - start,
-                        post.iterations, post.converged), (Ys if many else Ys[0])
+        post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng, speed=speeds if many else speeds[0],
+                      sigma_prior=None if self.net is None else self.net.prior_std(prior, self.settings.vi.sigma_prior, R[-1]))
+        return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
+                        time.perf_counter() - start, post.iterations, post.converged), (Ys if many else Ys[0])
 
     # --- streaming -----------------------------------------------------------------------------
     def update(self, q, dq, tau_ext) -> np.ndarray:

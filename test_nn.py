@@ -283,7 +283,8 @@ def write_good(path, rng):
 def test_weights_round_trip_through_the_file(tmp_path):
     rng = np.random.default_rng(12)
     arrays = write_good(tmp_path / "w.npz", rng)
-    params, stats, meta = nn.load_weights(tmp_path / "w.npz")
+    params, stats, meta, theta_range = nn.load_weights(tmp_path / "w.npz")
+    np.testing.assert_array_equal(theta_range, nn.DEFAULT_RANGE)      # the meta has no "data": the default range
     for name, a in nn.flatten(params).items():
         assert np.array_equal(a, arrays[name])
     assert meta["net"]["heads"] == 8

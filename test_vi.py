@@ -72,13 +72,51 @@ def test_window_quadratic_form_equals_gaussian_log_density_with_offset():
     assert quadratic == pytest.approx(nll, rel=1e-9)
 
 
+def test_window_quadratic_form_with_slow_errors_equals_gaussian_log_density():
+    """With noise_from_window's s (n,) and D (n, 3): -log N(tau_j; Y_j phi, s_j^2 I + B diag(D_j^2) B^T), B = (1, t,
+    (3 t^2 - 1) / 2) on t in [-1, 1], summed over joints by scipy, vs the quadratic form (Woodbury in precompute)."""
+    from scipy.stats import multivariate_normal
+    rng = np.random.default_rng(11)
+    Y, T = varied_window(rng, T=30), 30
+    t = np.linspace(-1, 1, T)[:, None]
+    tau = Y @ vi.phi_of(np.array([0.8, 0.03, -0.02, 0.1])) + 0.05 * t + 0.02 * rng.standard_normal((T, 7))
+    speed = rng.uniform(0.0, 0.05, 7)
+    s, D = vi.noise_from_window(Y, tau, vi.VISettings(), speed)
+    window = vi.precompute(Y, tau, settings=vi.VISettings(), speed=speed)
+    B = np.hstack([np.ones((T, 1)), t, 1.5 * t * t - 0.5])
+    phi = vi.phi_of(np.array([0.75, 0.02, 0.0, 0.12]))
+    nll = -sum(multivariate_normal.logpdf(tau[:, j], Y[:, j] @ phi, s[j] ** 2 * np.eye(T) + B @ np.diag(D[j] ** 2) @ B.T)
+               for j in range(7))
+    assert 0.5 * phi @ window.A @ phi - window.b @ phi + 0.5 * window.c + window.log_norm == pytest.approx(nll, rel=1e-9)
+
+
+def test_joint_speed_of_a_steady_motion_is_its_speed():
+    v = np.array([0.05, -0.02, 0.0, 0.1, -0.3, 0.01, 0.2])                    # rad/s
+    q = Q_READY + np.arange(200)[:, None] * 1e-3 * v
+    np.testing.assert_allclose(vi.joint_speed(q, 1e-3), np.abs(v), rtol=1e-9, atol=1e-12)
+
+
+def test_moving_arm_widens_the_constant_error_by_its_speed():
+    """The constant part's variance grows by min(motion_gain |speed|, motion_max)^2 on every joint, nothing else."""
+    rng = np.random.default_rng(12)
+    Y = varied_window(rng, T=100)
+    tau = Y @ vi.phi_of(np.array([1.0, 0.0, 0.02, 0.1])) + 0.02 * rng.standard_normal((100, 7))
+    st, speed = vi.VISettings(), rng.uniform(0, 0.1, 7)
+    (s0, D0), (s1, D1) = vi.noise_from_window(Y, tau, st), vi.noise_from_window(Y, tau, st, speed)
+    np.testing.assert_array_equal(s0, s1)
+    np.testing.assert_allclose(D1[:, 0] ** 2 - D0[:, 0] ** 2, (st.motion_gain * np.linalg.norm(speed)) ** 2, rtol=1e-9)
+    np.testing.assert_array_equal(D1[:, 1:], D0[:, 1:])
+    capped = vi.noise_from_window(Y, tau, st, np.full(7, 10.0))[1][:, 0] ** 2 - D0[:, 0] ** 2
+    np.testing.assert_allclose(capped, st.motion_max**2, rtol=1e-9)
+
+
 def test_residual_noise_rule_ignores_the_payloads_own_torque_in_a_moving_window():
     rng = np.random.default_rng(11)
     Y, s_true = varied_window(rng, T=300), np.array([0.3, 0.25, 0.2, 0.15, 0.12, 0.11, 0.2])
     offsets = rng.uniform(-1, 1, 7)
     tau = Y @ vi.phi_of(np.array([1.0, 0.05, 0.0, 0.1])) + offsets + s_true * rng.standard_normal((300, 7))
-    s = vi.noise_from_window(Y, tau, vi.VISettings())
-    np.testing.assert_allclose(s, np.maximum(s_true, 0.1), rtol=0.15)
+    s, _ = vi.noise_from_window(Y, tau, vi.VISettings())
+    np.testing.assert_allclose(s, s_true, rtol=0.15)              # white noise: no autocorrelation inflation
     assert np.all(tau.std(axis=0)[1:4] > 3 * s_true[1:4])        # the plain std would count the payload as noise
 
 
@@ -204,6 +242,9 @@ def test_simulated_windows_estimate_mass_and_horizontal_com_with_coverage(simula
     (dict(rng=None), "rng"),
     (dict(noise_std=np.zeros(7)), "noise_std"),
     (dict(settings="fast"), "settings"),
+    (dict(speed=np.zeros(3)), "speed"),
+    (dict(speed=-np.ones(7)), "speed"),
+    (dict(sigma_prior=np.zeros(4)), "sigma_prior"),
 ])
 def test_bad_input_raises_value_error_naming_argument(kwargs, name):
     rng = np.random.default_rng(8)
@@ -215,6 +256,7 @@ def test_bad_input_raises_value_error_naming_argument(kwargs, name):
 @pytest.mark.parametrize("kwargs, name", [
     (dict(sigma_prior=(0.5, 0.02, 0.02)), "sigma_prior"), (dict(lr=-1.0), "lr"), (dict(samples=3), "samples"),
     (dict(samples=0), "samples"), (dict(noise_rule="max"), "noise_rule"), (dict(average=1.0), "average"),
+    (dict(motion_gain=-1.0), "motion_gain"), (dict(load_share=np.nan), "load_share"),
 ])
 def test_invalid_settings_raise_value_error(kwargs, name):
     with pytest.raises(ValueError, match=rf"^{name}:"):

@@ -28,40 +28,39 @@ class VISettings:
     min_iterations: int = 10           # ours: first convergence check (against the start)
     check_every: int = 10              # ours: iterations between convergence checks
     average: float = 0.9               # ours: decay of the running (exponential) average of the iterates
-    tol: float = 0.05                  # ours: largest change of the running average between two checks,
-                                       #   mu in units of the starting sigma, log sigma absolute
+    tol: float = 0.05                  # ours: largest move of the running average between checks (mu / sigma0, log sigma)
     warm_start: bool = True            # ours: start at the MAP with the Laplace mean-field sigma (False: q = prior)
     map_steps: int = 20                # ours: most Gauss-Newton steps of the warm start
-    noise_rule: str = "residual"       # ours: "residual" (rms of the window's least-squares residual per joint)
-                                       #   or "range" (authors' code: 0.25 x the range of the joint's torque)
-    noise_scale: float = 1.0           # multiplies the rule's per-joint value
-    noise_floor: float = 0.1           # Nm, lowest per-joint noise std, authors' public code
-    offset_std: float = 0.05           # Nm, std of a torque offset constant over the window, marginalised
-                                       #   (ours; Panda torque repeatability 0.05 Nm, panda_facts.md)
+    noise_rule: str = "residual"       # ours: "residual" (noise_from_window) or "range" (authors' code)
+    noise_scale: float = 1.0           # multiplies the rule's per-joint white-noise value
+    noise_floor: float = 0.0058        # Nm, lowest white-noise std: resolution 0.02 Nm / sqrt(12) (authors': 0.1)
+    offset_std: float = 0.005          # Nm, std of an offset constant over the window (ours: realistic preset)
+    load_share: float = 0.01           # ours: constant error per unit of load torque (bias moves as the arm sags)
+    slow_gain: float = 1.0             # ours: constant error per unit of the residual's slow part (settling,
+                                       #   friction), both calibrated with `python sim.py calibration`
+    motion_gain: float = 1.0           # Nm s/rad, ours: constant error per unit of the arm's speed |dq| (friction,
+    motion_max: float = 1.3            #   model error as the pose leaves the reference's); Nm, at most (Gaz's p1)
+    reference_samples: int = 30        # samples of the reference the window is referred to (RMESettings.reference)
+    observed_ratio: float = 0.5        # ours: a parameter counts as observed if its posterior std < this x prior std
     keep_history: bool = False         # record mu, sigma and the -ELBO estimate at every iteration
 
     def __post_init__(self):
         sp = np.asarray(self.sigma_prior, dtype=float)
         if sp.shape != (4,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
             raise ValueError(f"sigma_prior: expected 4 finite values > 0, found {self.sigma_prior}")
-        for name in ("lr", "clip_norm", "tol", "noise_scale"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a finite value > 0, found {v}")
-        for name in ("noise_floor", "offset_std", "adam_eps"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"{name}: expected a finite value >= 0, found {v}")
-        for name in ("samples", "max_iterations", "check_every", "map_steps"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v >= (0 if name == "map_steps" else 1)):
+        positive = ("lr", "clip_norm", "tol", "noise_scale", "observed_ratio")
+        for name in positive + ("noise_floor", "offset_std", "adam_eps", "load_share", "slow_gain", "motion_gain", "motion_max"):
+            if not (np.isfinite(v := getattr(self, name)) and (v > 0 if name in positive else v >= 0)):
+                raise ValueError(f"{name}: expected a finite value {'>' if name in positive else '>='} 0, found {v}")
+        for name in ("samples", "max_iterations", "check_every", "map_steps", "reference_samples"):
+            if not (isinstance(v := getattr(self, name), (int, np.integer)) and v >= (0 if name == "map_steps" else 1)):
                 raise ValueError(f"{name}: expected a positive integer, found {v!r}")
         if not (0 <= self.min_iterations <= self.max_iterations):
             raise ValueError(f"min_iterations: expected 0..max_iterations, found {self.min_iterations}")
-        if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
-            raise ValueError(f"betas: expected two values in [0, 1), found {self.betas}")
-        if not 0 <= self.average < 1:
-            raise ValueError(f"average: expected a value in [0, 1), found {self.average}")
+        for name, ok in (("betas", len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas)),
+                         ("average", 0 <= self.average < 1)):
+            if not ok:
+                raise ValueError(f"{name}: expected values in [0, 1), found {getattr(self, name)}")
         if self.antithetic and self.samples % 2:
             raise ValueError(f"samples: expected an even number with antithetic pairs, found {self.samples}")
         if self.noise_rule not in ("residual", "range"):
@@ -70,24 +69,21 @@ class VISettings:
 
 @dataclass(frozen=True)
 class Window:
-    """The Gaussian log-likelihood of a window as a quadratic form in phi (4,):
-    -log p(D | theta) = 1/2 phi^T A phi - b^T phi + c/2 + log_norm."""
+    """-log p(D | theta) = 1/2 phi^T A phi - b^T phi + c/2 + log_norm, a window's likelihood in phi (4,)."""
     A: np.ndarray            # (4, 4)
     b: np.ndarray            # (4,)
     c: float
     log_norm: float          # 1/2 log det(2 pi Sigma) of the window's covariance
     noise_std: np.ndarray    # (n,) per-joint white-noise std s_j [Nm]
     T: int
+    offset_std: np.ndarray   # (n, 3) per-joint std D_j of the error's constant, linear, parabolic parts [Nm]
 
 
 @dataclass
 class Posterior:
-    """q(theta) = N(mean, diag(std^2)) and how the solver got there.
-
-    std is the mean-field sigma, which ignores the posterior's correlations and so understates the marginal
-    spread of correlated components (from one pose, r along gravity is unobservable and m, r trade off);
-    cov is the Laplace covariance H^-1 at the mean (Gauss-Newton Hessian of the log joint), whose diagonal
-    (marginal_std) gives honest intervals. Measured coverage: test_vi.py and `python sim.py vi-bench`."""
+    """q(theta) = N(mean, diag(std^2)) and how the solver got there. std, the mean-field sigma, understates the
+    spread of correlated components (m, r trade off); cov is the Laplace covariance H^-1 at the mean, whose diagonal
+    (marginal_std) gives honest intervals (coverage: `python sim.py calibration`)."""
     mean: np.ndarray         # (4,) m [kg], rx, ry, rz [m] in the ee frame
     std: np.ndarray          # (4,)
     cov: np.ndarray          # (4, 4)
@@ -97,12 +93,10 @@ class Posterior:
     status: str              # "converged" or "max_iterations"
     neg_elbo: float          # -ELBO at (mean, std), Monte Carlo with 64 samples
     noise_std: np.ndarray    # (n,) the likelihood's per-joint noise std
+    observed: np.ndarray     # (4,) bool: marginal_std < observed_ratio x the prior's std (the data informed it)
     history: np.ndarray | None = field(default=None, repr=False)   # (iterations, 9): mu, sigma, -ELBO
 
-    @property
-    def marginal_std(self):
-        """(4,) sqrt(diag(cov))."""
-        return np.sqrt(np.diag(self.cov))
+    marginal_std = property(lambda self: np.sqrt(np.diag(self.cov)), doc="(4,) sqrt(diag(cov))")
 
 
 # --- input checks ------------------------------------------------------------------------------------
@@ -119,75 +113,95 @@ def _array(name, x, shape_text, ndim):
     return a
 
 
+def joint_speed(q, dt, lag=20):
+    """(n,) rms speed [rad/s] of each joint over the window q (T, n) sampled every dt s (differences lag apart)."""
+    lag = max(1, min(lag, len(q) - 1))
+    return np.sqrt(np.mean(((q[lag:] - q[:-lag]) / (lag * dt)) ** 2, axis=0))
+
+
 def check_window(Y, tau):
     """Checked Y (T, n, 4) and tau (T, n)."""
-    Y = _array("Y", Y, "(T, n, 4)", 3)
+    Y, tau = _array("Y", Y, "(T, n, 4)", 3), tau
     if Y.shape[2] != 4 or Y.shape[0] < 1:
         raise ValueError(f"Y: expected shape (T, n, 4) with T >= 1, found {Y.shape}")
-    tau = _array("tau", tau, f"(T, n) = {Y.shape[:2]}", 2)
-    if tau.shape != Y.shape[:2]:
+    if (tau := _array("tau", tau, f"(T, n) = {Y.shape[:2]}", 2)).shape != Y.shape[:2]:
         raise ValueError(f"tau: expected shape {Y.shape[:2]} to match Y, found {tau.shape}")
     return Y, tau
 
 
-# ------------------------------------------------------------------------------------------------------
-# Likelihood: the window's quadratic form in phi (computed once, O(T n))
-# ------------------------------------------------------------------------------------------------------
-def noise_from_window(Y, tau, settings=VISettings()):
-    """Per-joint likelihood noise s (n,) [Nm] from the window Y (T, n, 4), tau (T, n).
+# --- Likelihood: the window's quadratic form in phi (computed once, O(T n)) --------------------------
+def noise_from_window(Y, tau, settings=VISettings(), speed=None):
+    """Per-joint error model of the window Y (T, n, 4), tau (T, n), speed (n,) [rad/s] (joint_speed; None: at rest):
+    s (n,) [Nm] the std of the error that averages down over the T samples, D (n, 3) [Nm] the std of its slow parts
+    (constant, P1(t), P2(t)), marginalised by precompute.
 
-    "residual": s_j = rms over t of the least-squares residual tau_tj - y_tj phi - beta_j (phi shared by the
-    joints, beta_j a per-joint constant), i.e. what the model cannot explain; unlike the range or the std of
-    tau it does not count the payload's own pose-dependent torque (a moving window) as noise.
-    "range": s_j = 0.25 (max_t tau_tj - min_t tau_tj), the authors' code. Both: max(noise_scale s_j, noise_floor).
+    "residual": res (T, n), the least-squares residual of tau_tj = y_tj phi + beta_j (phi shared, beta_j per joint),
+    splits into a slow part (line and parabola in t per joint: settling, friction, a drifting bias) and the rest e.
+    s_j = max(noise_scale rms(e_j) sqrt((1 + rho_j) / (1 - rho_j)), noise_floor), rho_j the lag-1 autocorrelation of
+    e_j (the variance of the mean of AR(1) noise); d_j^2 = offset_std^2 + (load_share |mean_t tau_tj|)^2 +
+    (slow_gain rms(slow_j))^2 + s_j^2 / reference_samples + min(motion_gain |speed|, motion_max)^2: the sensor's
+    bias, its change as the arm sags under the load, what settling leaves in the window's mean, the noise of the
+    reference the window is referred to, what a moving arm adds on every joint (friction, and the model's error as
+    the pose leaves the reference's: steady over a window of steady motion, no residual shows it); the P1 and
+    P2 parts: slow_gain x the fitted coefficient's rms (with offset_std): a drift that shadows the arm's motion.
+    "range": s_j = max(noise_scale 0.25 (max_t tau_tj - min_t tau_tj), noise_floor) (authors' code), D_j = (offset_std, 0, 0).
     """
-    T = Y.shape[0]
+    T, n, _ = Y.shape
     if settings.noise_rule == "range":
-        s = 0.25 * (tau.max(axis=0) - tau.min(axis=0))
-    elif T < 2:
-        raise ValueError(f"tau: the residual noise rule needs T >= 2 samples, found T = {T}")
-    else:
-        Yc = Y - Y.mean(axis=0)                              # (T, n, 4): per-joint constants removed
-        tc = tau - tau.mean(axis=0)                          # (T, n)
-        Z = Yc.reshape(-1, 4)                                # (T n, 4)
-        G = Z.T @ Z
-        ridge = 1e-9 * (np.trace(G) + np.sum(Y * Y)) + 1e-300   # keeps phi finite when Yc is ~0 (static)
-        phi = np.linalg.solve(G + ridge * np.eye(4), Z.T @ tc.reshape(-1))
-        res = tc - Yc @ phi                                  # (T, n)
-        s = np.sqrt(np.sum(res * res, axis=0) / (T - 1))
-    return np.maximum(settings.noise_scale * s, settings.noise_floor)
+        s = settings.noise_scale * 0.25 * (tau.max(axis=0) - tau.min(axis=0))
+        return np.maximum(s, settings.noise_floor), np.outer(np.full(n, settings.offset_std), [1.0, 0.0, 0.0])
+    if T < 4:
+        raise ValueError(f"tau: the residual noise rule needs T >= 4 samples, found T = {T}")
+    Yc, tc = Y - Y.mean(axis=0), tau - tau.mean(axis=0)      # (T, n, 4), (T, n): per-joint constants removed
+    Z = Yc.reshape(-1, 4)                                    # (T n, 4)
+    G = Z.T @ Z
+    ridge = 1e-9 * (np.trace(G) + np.sum(Y * Y)) + 1e-300   # keeps phi finite when Yc is ~0 (static)
+    res = tc - Yc @ np.linalg.solve(G + ridge * np.eye(4), Z.T @ tc.reshape(-1))   # (T, n)
+    t = np.linspace(-1.0, 1.0, T)
+    B = np.stack([t, 1.5 * t * t - 0.5], axis=1)             # (T, 2) Legendre P1, P2: slow drift
+    coef = np.linalg.lstsq(B, res, rcond=None)[0]            # (2, n)
+    slow, e = B @ coef, res - B @ coef                       # (T, n) each
+    rho = np.clip(np.sum(e[1:] * e[:-1], axis=0) / np.maximum(np.sum(e * e, axis=0), 1e-300), 0.0, 0.9)
+    s = np.maximum(settings.noise_scale * np.sqrt(np.sum(e * e, axis=0) / (T - 3) * (1 + rho) / (1 - rho)),
+                   settings.noise_floor)
+    d2 = (settings.offset_std**2 + (settings.load_share * tau.mean(axis=0))**2
+          + settings.slow_gain**2 * np.mean(slow * slow, axis=0) + s**2 / settings.reference_samples
+          + np.minimum(settings.motion_gain * np.linalg.norm(0.0 if speed is None else speed), settings.motion_max)**2)
+    v = np.sqrt(settings.offset_std**2 + settings.slow_gain**2 * np.mean(coef * coef, axis=0))
+    return s, np.stack([np.sqrt(d2), v, v], axis=1)
 
 
-def precompute(Y, tau, noise_std=None, settings=VISettings()):
-    """Window quadratic form from Y (T, n, 4) and tau (T, n).
+def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None):
+    """Window quadratic form from Y (T, n, 4) and tau (T, n) (speed (n,): the joints' speed, noise_from_window).
 
-    Per joint j: tau_tj = y_tj^T phi + beta_j + e_tj with e_tj ~ N(0, s_j^2) white and beta_j ~ N(0, d^2)
-    (d = settings.offset_std) constant over the window, marginalised: the joint's covariance over the window is
-    s_j^2 I + d^2 11^T, whose inverse is (I - k_j 11^T) / s_j^2 with k_j = d^2 / (s_j^2 + T d^2). So
-      A = sum_j (G_j - k_j yb_j yb_j^T) / s_j^2,  b = sum_j (h_j - k_j yb_j taub_j) / s_j^2,
-    with G_j = sum_t y y^T, h_j = sum_t y tau, yb_j = sum_t y, taub_j = sum_t tau. d = 0: independent samples.
-    noise_std (n,) overrides the settings' noise rule.
+    Per joint j: tau_j = Y_j phi + B g_j + e_j, e_j ~ N(0, s_j^2 I) white, B (T, 3) = (1, P1(t), P2(t)) and
+    g_j ~ N(0, diag(D_j^2)) a slow error (an offset, a drift), marginalised: the joint's covariance over the window is
+    S_j = s_j^2 I + B diag(D_j^2) B^T, and by Woodbury S_j^-1 = (I - B K_j B^T) / s_j^2 with
+    K_j = R (s_j^2 I + R B^T B R)^-1 R, R = diag(D_j). So, with Yb_j = B^T Y_j, taub_j = B^T tau_j:
+      A = sum_j (Y_j^T Y_j - Yb_j^T K_j Yb_j) / s_j^2,  b = sum_j (Y_j^T tau_j - Yb_j^T K_j taub_j) / s_j^2.
+    s, D from noise_from_window; noise_std (n,) overrides s, with D_j = (settings.offset_std, 0, 0).
     """
     Y, tau = check_window(Y, tau)
     T, n, _ = Y.shape
+    if speed is not None and ((speed := _array("speed", speed, f"({n},)", 1)).shape != (n,) or np.any(speed < 0)):
+        raise ValueError(f"speed: expected shape ({n},) with values >= 0, found {speed}")
     if noise_std is None:
-        s = noise_from_window(Y, tau, settings)
+        s, D = noise_from_window(Y, tau, settings, speed)
     else:
-        s = _array("noise_std", noise_std, f"({n},)", 1)
+        s, D = _array("noise_std", noise_std, f"({n},)", 1), np.outer(np.full(n, settings.offset_std), [1.0, 0, 0])
         if s.shape != (n,) or np.any(s <= 0):
             raise ValueError(f"noise_std: expected shape ({n},) with values > 0, found {s}")
-    w = 1.0 / s**2                                           # (n,)
-    d2 = settings.offset_std**2
-    k = d2 / (s**2 + T * d2)                                 # (n,)
-    Zw = (Y * np.sqrt(w)[:, None]).reshape(-1, 4)            # (T n, 4) whitened regressor
-    tw = (tau * np.sqrt(w)).reshape(-1)
-    yb, tb = Y.sum(axis=0), tau.sum(axis=0)                  # (n, 4), (n,)
-    wk = w * k
-    A = Zw.T @ Zw - (yb * wk[:, None]).T @ yb
-    b = Zw.T @ tw - (yb * wk[:, None]).T @ tb
-    c = float(tw @ tw - wk @ tb**2)
-    log_norm = 0.5 * float(np.sum(T * (LOG_2PI + np.log(s**2)) + np.log1p(T * d2 / s**2)))
-    return Window(0.5 * (A + A.T), b, c, log_norm, s, T)
+    t = np.linspace(-1.0, 1.0, T)
+    B = np.stack([np.ones(T), t, 1.5 * t * t - 0.5], axis=1)          # (T, 3)
+    M = s[:, None, None] ** 2 * np.eye(3) + D[:, :, None] * (B.T @ B) * D[:, None, :]   # (n, 3, 3)
+    K = D[:, :, None] * np.linalg.inv(M) * D[:, None, :] / s[:, None, None] ** 2          # (n, 3, 3), / s_j^2
+    Zw, tw = (Y / s[:, None]).reshape(-1, 4), (tau / s).reshape(-1)   # (T n, 4), (T n,) whitened
+    Yb, tb = np.einsum("tk,tjp->jkp", B, Y), B.T @ tau       # (n, 3, 4), (3, n)
+    A = Zw.T @ Zw - np.einsum("jkp,jkq->pq", Yb, KYb := K @ Yb)                   # K Yb (n, 3, 4)
+    b = Zw.T @ tw - np.einsum("jkp,kj->p", KYb, tb)
+    c = float(tw @ tw - np.einsum("kj,jkl,lj->", tb, K, tb))
+    log_norm = 0.5 * float(T * np.sum(LOG_2PI + np.log(s**2)) + np.sum(np.linalg.slogdet(M)[1] - 3 * np.log(s**2)))
+    return Window(0.5 * (A + A.T), b, c, log_norm, s, T, D)
 
 
 def combine(windows):
@@ -196,13 +210,11 @@ def combine(windows):
     if len(windows) < 1:
         raise ValueError("windows: expected at least one Window, found none")
     total = lambda key: sum(getattr(w, key) for w in windows)
-    return Window(total("A"), total("b"), total("c"), total("log_norm"),
-                  np.sqrt(np.mean([w.noise_std ** 2 for w in windows], axis=0)), total("T"))
+    rms = lambda key: np.sqrt(np.mean([getattr(w, key) ** 2 for w in windows], axis=0))
+    return Window(total("A"), total("b"), total("c"), total("log_norm"), rms("noise_std"), total("T"), rms("offset_std"))
 
 
-# ------------------------------------------------------------------------------------------------------
-# -ELBO and its gradient (reparameterised, eps held fixed)
-# ------------------------------------------------------------------------------------------------------
+# --- -ELBO and its gradient (reparameterised, eps held fixed) ----------------------------------------
 def likelihood_grad(theta, A, b, value=True):
     """NLL(phi(theta_k)) without its constants and dNLL/dtheta_k for samples theta (K, 4) -> (K,), (K, 4).
 
@@ -228,12 +240,10 @@ def neg_elbo_grad(mu, log_sigma, window, mu_prior, sigma_prior, eps):
     Reparameterisation: d/dmu = mean_k dNLL/dtheta_k, d/dlog_sigma = mean_k (dNLL/dtheta_k * eps_k) * sigma.
     Returns (value, d_mu (4,), d_log_sigma (4,)).
     """
-    mu, log_sigma, eps = (np.asarray(a, dtype=float) for a in (mu, log_sigma, eps))
-    sigma_prior = np.asarray(sigma_prior, dtype=float)
+    mu, log_sigma, eps, sigma_prior = (np.asarray(a, dtype=float) for a in (mu, log_sigma, eps, sigma_prior))
     sigma = np.exp(log_sigma)
     nll, dtheta = likelihood_grad(mu + sigma * eps, window.A, window.b)
-    P = 1.0 / sigma_prior**2
-    diff = mu - mu_prior
+    P, diff = 1.0 / sigma_prior**2, mu - mu_prior
     value = (nll.mean() + 0.5 * window.c + window.log_norm
              + 0.5 * np.sum((diff**2 + sigma**2) * P) + np.sum(np.log(sigma_prior)) + 2.0 * LOG_2PI
              - np.sum(log_sigma) - 2.0 * (1.0 + LOG_2PI))
@@ -242,14 +252,11 @@ def neg_elbo_grad(mu, log_sigma, window, mu_prior, sigma_prior, eps):
     return float(value), d_mu, d_log_sigma
 
 
-def neg_elbo(mu, log_sigma, window, mu_prior, sigma_prior, eps):
-    """The Monte Carlo -ELBO of neg_elbo_grad, value only."""
+def neg_elbo(mu, log_sigma, window, mu_prior, sigma_prior, eps):         # the Monte Carlo -ELBO alone
     return neg_elbo_grad(mu, log_sigma, window, mu_prior, sigma_prior, eps)[0]
 
 
-# ------------------------------------------------------------------------------------------------------
-# Warm start: MAP by Gauss-Newton, sigma from the diagonal of its Hessian
-# ------------------------------------------------------------------------------------------------------
+# --- Warm start: MAP by Gauss-Newton, sigma from the diagonal of its Hessian -------------------------
 def gauss_newton(theta, window, mu_prior, sigma_prior):
     """-log p(D, theta) up to constants, E = 1/2 phi^T A phi - b^T phi + 1/2 sum_i P_i (theta_i - mp_i)^2, its gradient
     (4,) and Gauss-Newton Hessian H (4, 4), P = 1/sp^2: with J = dphi/dtheta = [(1, r), m I],
@@ -294,22 +301,20 @@ def map_estimate(window, mu_prior, sigma_prior, steps=20, tol=1e-3):
 
 
 # --- the solver ---------------------------------------------------------------------------------------
-def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None):
+def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma_prior=None, speed=None):
     """q(theta) = N(mean, diag(std^2)) for the window Y (T, n, 4) = payload_regressor(q), tau (T, n) = tau_ext
-    (referred to the torque before the change; or lists of windows: combine), prior N(mu_prior, diag(sigma_prior^2)).
+    (referred to the torque before the change; or lists of windows: combine), prior N(mu_prior, diag(sigma_prior^2)),
+    sigma_prior (4,) = settings.sigma_prior unless given (e.g. widened where the network extrapolates), speed (n,)
+    the joints' speed in the window (joint_speed; a list with lists of windows; None: at rest).
 
-    Adam minimises the Monte Carlo -ELBO over x = (z, w): mu = mu0 + C z, log sigma = log sigma0 + w, from the
-    starting q (mu0, sigma0). warm_start: mu0 = MAP, sigma0 = the Laplace mean-field sigma (1 / sqrt(H_ii)),
-    C = chol(H^-1) (lower triangular), so that Adam's steps are fractions of the posterior's width along its own
-    axes, correlated (m, r) included; otherwise q starts at the prior and C = diag(sigma_prior).
-    m >= 0: after each step mu_m = mu0_m + C_00 z_0 is projected onto mu_m >= 0 (projected Adam; the objective
-    and its gradient are unchanged; samples of m may be < 0, where the likelihood is still defined).
-    Convergence: every check_every iterations the running average of x must have moved by less than tol;
-    the running average is what is returned (it smooths the Monte Carlo jitter of the last iterates).
+    Adam minimises the Monte Carlo -ELBO over x = (z, w): mu = mu0 + C z, log sigma = log sigma0 + w. warm_start:
+    mu0 = MAP, sigma0 = the Laplace mean-field sigma (1 / sqrt(H_ii)), C = chol(H^-1), so that Adam's steps are
+    fractions of the posterior's width along its own axes; otherwise q starts at the prior and C = diag(sigma_prior).
+    m >= 0: mu_m = mu0_m + C_00 z_0 is projected onto mu_m >= 0 after each step (samples of m may be < 0).
+    Convergence: every check_every iterations the running average of x (returned) must move by less than tol.
     """
     t0 = time.perf_counter()
-    mu_prior = _array("mu_prior", mu_prior, "(4,)", 1)
-    if mu_prior.shape != (4,):
+    if (mu_prior := _array("mu_prior", mu_prior, "(4,)", 1)).shape != (4,):
         raise ValueError(f"mu_prior: expected shape (4,), found {mu_prior.shape}")
     if not isinstance(rng, np.random.Generator):
         raise ValueError(f"rng: expected a np.random.Generator, found {type(rng).__name__}")
@@ -318,43 +323,42 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None):
     many = isinstance(Y, (list, tuple))
     if many != isinstance(tau, (list, tuple)) or (many and len(Y) != len(tau)):
         raise ValueError(f"Y, tau: expected a window each or equal-length lists, found {type(Y)}, {type(tau)}")
-    window = combine([precompute(Yi, ti, noise_std, settings) for Yi, ti in zip(Y, tau)]) if many else \
-        precompute(Y, tau, noise_std, settings)
-    sp = np.asarray(settings.sigma_prior, dtype=float)
+    if many and len(speed := [None] * len(Y) if speed is None else list(speed)) != len(Y):
+        raise ValueError(f"speed: expected one (n,) array per window ({len(Y)}), found {len(speed)}")
+    window = combine([precompute(Yi, ti, noise_std, settings, v) for Yi, ti, v in zip(Y, tau, speed)]) if many else \
+        precompute(Y, tau, noise_std, settings, speed)
+    sp = np.asarray(settings.sigma_prior if sigma_prior is None else sigma_prior, dtype=float)
+    if sp.shape != (4,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
+        raise ValueError(f"sigma_prior: expected 4 finite values > 0, found {sigma_prior}")
     if settings.warm_start:
         mu0, H = map_estimate(window, mu_prior, sp, settings.map_steps)
         sigma0 = 1.0 / np.sqrt(np.diag(H))
         C = np.linalg.cholesky(np.linalg.inv(H))                     # C C^T = H^-1, C[0, 1:] = 0
     else:
-        mu0, sigma0, C = mu_prior.copy(), sp.copy(), np.diag(sp)
-        mu0[0] = max(mu0[0], 0.0)
+        mu0, sigma0, C = np.r_[max(mu_prior[0], 0.0), mu_prior[1:]], sp.copy(), np.diag(sp)
     x, it, converged, history = _adam(window, mu_prior, sp, mu0, sigma0, C, settings, rng)
     mean, std = mu0 + C @ x[:4], sigma0 * np.exp(x[4:])
     cov = np.linalg.inv(gauss_newton(mean, window, mu_prior, sp)[2])      # Laplace covariance at the mean
     eps = rng.standard_normal((64, 4))                               # a final, less noisy -ELBO estimate
     value = neg_elbo_grad(mean, np.log(std), window, mu_prior, sp, eps)[0]
-    return Posterior(mean, std, cov, it, time.perf_counter() - t0, converged,
-                     "converged" if converged else "max_iterations", value, window.noise_std, history)
+    return Posterior(mean, std, cov, it, time.perf_counter() - t0, converged, "converged" if converged else
+                     "max_iterations", value, window.noise_std, np.sqrt(np.diag(cov)) < settings.observed_ratio * sp, history)
 
 
 def _draws(rng, chunk, samples, antithetic):
     """eps (chunk, samples, 4); antithetic: pairs (eps, -eps), which cancel the odd terms of the estimator."""
-    if not antithetic:
-        return rng.standard_normal((chunk, samples, 4))
-    half = rng.standard_normal((chunk, samples // 2, 4))
-    return np.concatenate([half, -half], axis=1)
+    half = rng.standard_normal((chunk, samples // 2 if antithetic else samples, 4))
+    return np.concatenate([half, -half], axis=1) if antithetic else half
 
 
 def _adam(window, mu_prior, sp, mu0, sigma0, C, s, rng):
     """Projected Adam on x = (z, w) (8,). Returns (running average of x, iterations, converged, history).
 
-    Gradients: d/dz = C^T d/dmu, d/dw = d/dlog_sigma. The prior's part of C^T d/dmu, C^T P (mu0 + C z - mp),
-    is affine in z: q0 + Q z with Q = C^T P C, q0 = C^T P (mu0 - mp).
-    Control variate (Miller et al. 2017, "Reducing reparameterization gradient variance"): the NLL's quadratic
-    model at mu0, with Hessian H0 = J^T A J, contributes (H0 (sigma eps_k)) * eps_k * sigma to each sample's
-    d/dlog_sigma, with known mean diag(H0) sigma^2; subtracting the first and adding the second keeps the
-    estimate unbiased and removes the noise of eps_k^2 from it (exact for a Gaussian posterior).
-    Its part in d/dmu, H0 sigma eps_k, already cancels within antithetic pairs."""
+    d/dz = C^T d/dmu, d/dw = d/dlog_sigma; the prior's part of C^T d/dmu is affine in z: q0 + Q z, Q = C^T P C,
+    q0 = C^T P (mu0 - mp). Control variate (Miller et al. 2017): the NLL's quadratic model at mu0 (Hessian
+    H0 = J^T A J) adds (H0 (sigma eps_k)) * eps_k * sigma to each sample's d/dlog_sigma, of known mean diag(H0)
+    sigma^2: swapping one for the other keeps the estimate unbiased without the noise of eps_k^2 (its part in d/dmu
+    cancels within antithetic pairs)."""
     b1, b2 = s.betas
     A, b, P = window.A, window.b, 1.0 / sp**2
     H0 = gauss_newton(mu0, window, mu_prior, sp)[2] - np.diag(P) if s.control_variate else np.zeros((4, 4))
@@ -378,19 +382,15 @@ def _adam(window, mu_prior, sp, mu0, sigma0, C, s, rng):
         norm2 = g @ g
         if norm2 > s.clip_norm**2:                                    # global-norm clipping
             g *= s.clip_norm / np.sqrt(norm2)
-        m1 *= b1
-        m1 += (1 - b1) * g
-        m2 *= b2
-        m2 += (1 - b2) * g * g
+        m1 += (1 - b1) * (g - m1)                                     # m1 = b1 m1 + (1 - b1) g
+        m2 += (1 - b2) * (g * g - m2)
         c1, c2 = 1 - b1**t, np.sqrt(1 - b2**t)                        # Adam's bias corrections
         x -= (s.lr * c2 / c1) * m1 / (np.sqrt(m2) + s.adam_eps * c2)
         if x[0] < z_min:                                              # projection: mu_m >= 0
             x[0] = z_min
-        avg *= s.average
-        avg += (1 - s.average) * x
+        avg += (1 - s.average) * (x - avg)                            # running average of the iterates
         if history is not None:
-            history[t - 1, :8] = np.concatenate([mu, sigma])
-            history[t - 1, 8] = neg_elbo_grad(mu, np.log(sigma), window, mu_prior, sp, eps)[0]
+            history[t - 1] = *mu, *sigma, neg_elbo_grad(mu, np.log(sigma), window, mu_prior, sp, eps)[0]
         if t % s.check_every == 0:
             current = avg / (1 - s.average**t)
             if t >= s.min_iterations and np.max(np.abs(current - last)) < s.tol:

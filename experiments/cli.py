@@ -35,6 +35,8 @@ DEMOS = {
                  "experiments.cli:_qp_bench", ("seed", "json")),
     "reliability": ("randomised loads, removals and pushes on random poses: how many changes are compensated",
                     "experiments.reliability:main", ("seed", "json", "episodes")),
+    "calibration": ("coverage and sharpness of RME's 2-sigma intervals on the realistic preset, rest-window spread",
+                    "experiments.calibration:main", ("seed", "json", "windows")),
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
@@ -48,6 +50,7 @@ FLAGS = {
     "view": (("--view",), dict(action="store_true", help="open MuJoCo's viewer when a display exists")),
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
     "episodes": (("--episodes",), dict(type=int, default=100, help="episodes of each kind")),
+    "windows": (("--windows",), dict(type=int, default=200, help="simulated windows")),
 }
 
 
