@@ -26,6 +26,9 @@ class EffectConfig:
     sigmoid_p3: tuple = (-0.3, 0.3)          # rad/s, bounds of Gaz p3 (fitted |p3| < 0.05, Gaz et al. 2019)
     sigmoid_rows: int = 2000                 # samples per joint used for the sigmoid's fit (every k-th row)
     coulomb_rows: int = 1000                 # ... for the Coulomb width (each one a filter window of dq; ours)
+    bias_joints: int = 0                     # joints whose sin q_k, cos q_k enter the pose_bias effect (7 on the
+    #                                          Panda); 0: no pose_bias in the library (opt-in: a map of 15 n
+    #                                          parameters absorbs any static error, a wrong gravity scale included)
 
 
 class Signals:
@@ -223,6 +226,26 @@ def custom(name: str, explanation: str, regressor: Callable, params, units, per_
                   lower=None if lower is None else tuple(lower), upper=None if upper is None else tuple(upper))
 
 
+def pose_basis(q, m: int) -> np.ndarray:
+    """The pose-bias basis (T, 1 + 2m) of q (T, n): 1, sin q_1..q_m, cos q_1..q_m (joints beyond n: zero columns)."""
+    T, n = q.shape
+    k = min(n, m)
+    X = np.zeros((T, 1 + 2 * m))
+    X[:, 0] = 1.0
+    X[:, 1:1 + k], X[:, 1 + m:1 + m + k] = np.sin(q[:, :k]), np.cos(q[:, :k])
+    return X
+
+
+def pose_bias_block(q, m: int) -> np.ndarray:
+    """Regressor (T, n, (1 + 2m) n) of pose_bias: joint j's torque = sum_i p[i n + j] X_i(q), X = pose_basis(q, m)
+    (the per-joint parameter layout of Effect.labels: basis function i, then joint j)."""
+    X = pose_basis(q, m)
+    T, n = q.shape
+    Y = np.zeros((T, n, X.shape[1], n))
+    Y[:, np.arange(n), :, np.arange(n)] = X                 # (n, T, 1 + 2m) assigned on the diagonal j = j'
+    return Y.reshape(T, n, -1)
+
+
 def segments(effects, n: int, g, relax=()) -> list:
     """The physical.Segment of each effect's columns, in order (for physical.solve_physical); the effects named in
     relax get none of their constraints (a tilt then fits all of dg)."""
@@ -282,7 +305,13 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
                "G(q; g') - G(q; g) = -W dg with dg = Ry(ay) Rx(ax) g - g (exact)",
                lambda s: -s.gravity_map, ("ax", "ay"), ("rad", "rad"), smooth=False, physical="tilt",
                lower=(-c.tilt_max,) * 2, upper=(c.tilt_max,) * 2),
-    ]
+    ] + [
+        Effect("pose_bias", "a static torque that depends on the pose only: the torque sensor's pose-dependent bias "
+               "(and any static torque the nominal gravity misses), per joint a constant plus the first harmonics "
+               "sin q_k, cos q_k of every joint", lambda s: pose_bias_block(s.q, c.bias_joints),
+               ("b",) + tuple(f"{f} q{k + 1}" for f in ("sin", "cos") for k in range(c.bias_joints)),
+               ("Nm",) * (1 + 2 * c.bias_joints), per_joint=True, signal="q", smooth=False),
+    ][:1 if c.bias_joints > 0 else 0]
     return {e.name: e for e in effects}
 
 

@@ -63,3 +63,52 @@ def payload_lstsq(robot: Robot, q, tau_ext) -> np.ndarray:
     Y = robot.payload_regressor(q).reshape(-1, 4)
     phi = np.linalg.lstsq(Y, np.asarray(tau_ext).reshape(-1), rcond=None)[0]
     return vi.theta_of(phi)
+
+
+@dataclass(frozen=True)
+class HoldsConfig:
+    """A load-free calibration of the pose-dependent torque (effects "pose_bias"): holds at poses drawn uniformly in
+    a box center +- spans, joined by cosine moves; only the still end of each hold is fitted (no friction there)."""
+    spans: tuple = (0.05, 0.05, 0.05, 0.05, 0.1, 0.6, 0.1)   # rad, half-widths per joint (ours: a tilt of the ee
+    #                              turns joint 6; a load shifts the others by < 0.04 rad under CPIC)
+    poses: int = 60                # holds (the basis has 15 functions per joint; 60 poses over-determine them 4x)
+    hold: float = 0.5              # s at each pose
+    settle: float = 0.25           # s of each hold left out of the fit (the tracking loop settles at 20 rad/s)
+    margin: float = 0.05           # s before each move left out too (the log's torque filter spans +-0.025 s)
+    speed: float = 0.8             # rad/s, peak joint speed of a move (cosine profile; ours)
+    min_move: float = 0.2          # s, shortest move
+
+
+def hold_poses(center, config: HoldsConfig, rng: np.random.Generator) -> np.ndarray:
+    """The centre and config.poses - 1 poses (P, n) drawn uniformly in center +- spans, in nearest-neighbour order
+    (short moves)."""
+    center, spans = np.asarray(center, dtype=float), np.asarray(config.spans, dtype=float)
+    if center.shape != spans.shape:
+        raise ValueError(f"center: expected {spans.shape[0]} joint angles like config.spans, found {center.shape}")
+    todo = list(center + spans * rng.uniform(-1.0, 1.0, size=(config.poses - 1, len(center))))
+    out = [center]
+    while todo:
+        k = int(np.argmin([np.abs(p - out[-1]).max() for p in todo]))
+        out.append(todo.pop(k))
+    return np.array(out)
+
+
+def hold_reference(poses, config: HoldsConfig, dt: float = 1e-3):
+    """A reference through poses (P, n): hold each, then move to the next on a cosine profile whose peak joint speed is
+    config.speed. Returns t (T,), q_d, dq_d, ddq_d (T, n) and still (T,): the samples to fit (settled, not near a
+    move)."""
+    segs = []
+    for a, b in zip(poses, list(poses[1:]) + [None]):
+        steps = int(round(config.hold / dt))
+        hold = np.repeat(a[None], steps, axis=0)
+        still = (np.arange(steps) * dt >= config.settle) & (np.arange(steps) * dt < config.hold - config.margin)
+        segs.append((hold, np.zeros_like(hold), np.zeros_like(hold), still))
+        if b is None:
+            break
+        T = max(config.min_move, np.pi * np.abs(b - a).max() / (2.0 * config.speed))
+        s = np.arange(int(round(T / dt)))[:, None] * dt / T                  # (K, 1) in [0, 1)
+        w = np.pi / T
+        segs.append((a + 0.5 * (b - a) * (1 - np.cos(np.pi * s)), 0.5 * (b - a) * w * np.sin(np.pi * s),
+                     0.5 * (b - a) * w ** 2 * np.cos(np.pi * s), np.zeros(len(s), dtype=bool)))
+    q, dq, ddq, still = (np.concatenate(parts) for parts in zip(*segs))
+    return dt * np.arange(len(q)), q, dq, ddq, still

@@ -11,7 +11,11 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from cpic import Attractor
+from cpic import CPIC, Attractor, storage
+from dynamics import Q_READY
+from experiments.runner import ExactCompensation, PayloadChange, run
+from rme import RME
+from sim import Plant, PlantConfig
 
 
 @dataclass(frozen=True)
@@ -215,9 +219,10 @@ class Explorer:
         k0 = int(round(first[-1].t * rs.rate)) - rs.detector.window if first else -1
         if first and self._k - k0 <= len(self._q):
             idx = (k0 + np.arange(rs.reference)) % len(self._q)
+            self._base_q = self._q[idx]
             return self._tau[idx].mean(axis=0)
-        q, tau, _ = self._window(self.settings.window)
-        return (tau - self.robot.payload_torque(q, e.mean)).mean(axis=0)
+        self._base_q, tau, _ = self._window(self.settings.window)
+        return (tau - self.robot.payload_torque(self._base_q, e.mean)).mean(axis=0)
 
     def _window(self, T):
         """The last T samples, oldest first: q, tau_ext, dq (T, n)."""
@@ -253,7 +258,9 @@ class Explorer:
         """One posterior from the window at the start pose and the one at the tilted pose, each referred to the
         baseline, each with its own marginalised offset (the load-free level at the tilted pose is not known)."""
         qs, taus, dqs = zip(*x.windows)
-        taus = [tau - x.base for tau in taus]
+        corr = self.rme.correction                # RME subtracts it from the windows: refer to the corrected level
+        base = x.base if corr is None else x.base - corr.correction(self._base_q).mean(axis=0)
+        taus = [tau - base for tau in taus]
         rme = self.rme
         if self.settings.offset_std is not None:                     # the same estimator, its offset prior changed
             rme = copy.copy(rme)
@@ -290,10 +297,6 @@ def storage_check(theta, settings: ExploreSettings = ExploreSettings(), hold=0.3
     lambda_1 V + P (cpic.storage, the plant's own M) over each 1 ms step with that step's target must not increase
     (Prop. 4.1, F_ext = 0, Delta F_mm = 0); the moving target adds lambda_1 [V(x, c_k+1) - V(x, c_k)].
     Returns dict(max_rise [J] of S over a step at a fixed target, target_work [J], seconds)."""
-    from cpic import CPIC, storage
-    from dynamics import Q_READY
-    from experiments.runner import ExactCompensation, run
-    from sim import Plant
     plant = Plant()
     plant.set_payload(theta[0], theta[1:])
     robot = plant.robot
@@ -330,17 +333,13 @@ def storage_check(theta, settings: ExploreSettings = ExploreSettings(), hold=0.3
 
 
 def explore_trial(theta, seed, settings: ExploreSettings = ExploreSettings(), preset="realistic", pushes=(),
-                  t_attach=0.75, seconds=5.0):
-    """Hold the ready pose under CPIC with RME and the explorer, attach theta (4,) at t_attach: (Record, CPIC)."""
-    from cpic import CPIC
-    from dynamics import Q_READY
-    from experiments.runner import PayloadChange, run
-    from rme import RME
-    from sim import Plant, PlantConfig
+                  t_attach=0.75, seconds=5.0, correction=None):
+    """Hold the ready pose under CPIC with RME (correction: e.g. a bias map, experiments/bias_map.py) and the
+    explorer, attach theta (4,) at t_attach: (Record, CPIC)."""
     rng = np.random.default_rng(seed)
     plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
     ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)))
-    rme = RME(plant.robot, rng=np.random.default_rng(seed + 1))
+    rme = RME(plant.robot, rng=np.random.default_rng(seed + 1), correction=correction)
     rec = run(plant, ctrl, seconds, estimator=rme, events=[PayloadChange(t_attach, theta[0], theta[1:])] +
               list(pushes), q0=Q_READY, explorer=Explorer(settings))
     return rec, ctrl
@@ -372,29 +371,30 @@ def explore_table(seed=0, settings: ExploreSettings = ExploreSettings(), preset=
 
 
 def explore(args):
-    """`python sim.py explore [--seed S] [--json]`: the exploration on Table 5's payloads at the ready pose."""
+    """`python sim.py explore [--seed S] [--json]`: the exploration on Table 5's payloads at the ready pose, without
+    and with a bias map calibrated on a load-free hold log of each plant (experiments/bias_map.py)."""
     import json
-    res = explore_table(seed=args.seed)
+    from experiments.bias_map import add_map_column
+    res = add_map_column(explore_table(seed=args.seed), explore_trial, ExploreSettings())
     if args.json:
-        print(json.dumps(res))
-        return res
+        return print(json.dumps(res)) or res
     s = ExploreSettings()
     print(f"Active exploration for the CoM along gravity: realistic plant, ready pose, seed {args.seed}; tilt "
-          f"{math.degrees(s.tilt):.0f} deg about world {tuple(s.axis)} through the {s.pivot}, peak {s.speed} rad/s.")
-    print("truth (m, rx, ry, rz) | before: estimate at rest | after: both poses   |abs error| m [g], r [mm]   "
-          "time [s]  limit touched  S rise [J]")
+          f"{math.degrees(s.tilt):.0f} deg about world {tuple(s.axis)} through the {s.pivot}, peak {s.speed} rad/s.\n"
+          "truth (m, rx, ry, rz) | before: at rest | after: both poses | map: both poses, RME(correction=bias map)"
+          "\n     |abs error| m [g], r [mm]   time [s]  limit touched  S rise [J]")
     f = lambda v: " ".join(f"{x:6.3f}" for x in v)
     for r in res["rows"]:
         if r["before"] is None:
             print(f"  {f(r['truth'])}  {r['status']}")
             continue
-        e = lambda key: "    -" if r[key] is None else " ".join(
-            f"{1e3 * abs(a - b):4.0f}" for a, b in zip(r[key], r["truth"]))
-        print(f"  {f(r['truth'])}\n     before {f(r['before'])}   {e('before')}\n     after  "
-              f"{f(r['after']) if r['after'] else r['status']:27s}   {e('after')}   {r['seconds']:5.2f}   "
+        e = lambda v: "    -" if v is None else " ".join(f"{1e3 * abs(a - b):4.0f}" for a, b in zip(v, r["truth"]))
+        print(f"  {f(r['truth'])}\n     before {f(r['before'])}   {e(r['before'])}\n     after  "
+              f"{f(r['after']) if r['after'] else r['status']:27s}   {e(r['after'])}   {r['seconds']:5.2f}   "
               f"{'yes' if r['touched'] else 'no':3s} (margin {r['joint_margin']:.2f} rad, |tau|/max "
-              f"{r['torque_ratio']:.2f})  {r['storage']['max_rise']:.1e}")
+              f"{r['torque_ratio']:.2f})  {r['storage']['max_rise']:.1e}\n     map    "
+              f"{f(r['map']['after']) if r['map']['after'] else r['map']['status']:27s}   {e(r['map']['after'])}")
     print("mean |error|      m [g]  rx [mm]  ry [mm]  rz [mm]")
-    for key in ("before", "after"):
-        print(f"  {key:6s}         " + "  ".join(f"{1e3 * (x or np.nan):6.1f}" for x in res[f"{key}_mean_abs_error"]))
+    for key in ("before", "after", "map_before", "map_after"):
+        print(f"  {key:10s}     " + "  ".join(f"{1e3 * (x or np.nan):6.1f}" for x in res[f"{key}_mean_abs_error"]))
     return res
