@@ -7,12 +7,12 @@ import re
 import pytest
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-PACKAGES = ("diagnosis", "experiments", "robot")
+PACKAGES = ("diagnosis", "experiments", "motion", "robot")
 
 # Lowest first: a module may import modules of its own layer or below, never above.
 LAYERS = [
     {"qp", "dynamics"},
-    {"nn_numpy", "vi", "detector", "cpic", "sim"},                   # the method's pieces and the plant
+    {"nn_numpy", "vi", "detector", "cpic", "sim", "motion"},         # the method's pieces and the plant
     {"nn_train", "rme"},                                             # the pipeline and the trainer
     {"diagnosis"},                                                   # the diagnosis tool
     {"experiments", "franka", "robot"},                              # demos, benchmarks, the robot bridge

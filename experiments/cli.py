@@ -41,6 +41,8 @@ DEMOS = {
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
                 "experiments.explore:explore", ("seed", "json")),
+    "inertia": ("the payload's inertia from motion and its compensation on a wrist-turning limit cycle (about 1 min)",
+                "experiments.inertia_demo:inertia_demo", ("seed", "json")),
 }
 
 FLAGS = {
