@@ -376,7 +376,7 @@ class RME:
         e.t, e.kind = k / s.rate, kind
         before = max(np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2), 1e-12)   # what the estimate before leaves
         e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
-        plausible = bool(np.all(np.abs(e.mean[1:]) <= s.max_com) and e.mean[0] <= 1.2 * s.max_mass)
+        plausible = bool((e.mean[0] < 0.1 or np.all(np.abs(e.mean[1:]) <= s.max_com)) and e.mean[0] <= 1.2 * s.max_mass)
         e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Y))
         if not plausible:
             e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "

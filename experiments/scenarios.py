@@ -114,7 +114,7 @@ def static_hold(args):
     print_estimates(runs["with"])
     errs = {k: error_mm(v) for k, v in runs.items()}
     print("\n  t [s]   end-effector error [mm]   without RME   with RME")
-    for t in (1.7, 1.9, 2.0, 2.1, 2.25, 2.5, 3.0, 3.5, 4.0):
+    for t in (1.7, 2.0, 2.1, 2.25, 2.5, 3.0, 4.0):
         print(f"  {t:5.2f}   {'':24s}{errs['without'][at(runs['without'], t)]:11.2f}  {errs['with'][at(runs['with'], t)]:9.2f}")
     hist = [e for e in runs["with"]["history"] if e.accepted]
     k0 = at(runs["with"], t_attach - 0.05)
@@ -122,9 +122,6 @@ def static_hold(args):
     print(f"  error before the payload [mm]    {errs['without'][k0]:10.2f}  {errs['with'][k0]:9.2f}   (the plant is not "
           f"the nominal model)")
     print(f"  final error [mm]                 {errs['without'][-1]:10.2f}  {errs['with'][-1]:9.2f}")
-    for e in hist:
-        print(f"  {e.kind + ' estimate':31s}        -      m = {e.mean[0]:.3f} kg, r = {np.round(e.mean[1:], 3)} m")
-    print(f"  {'truth':31s}        -      m = {theta[0]:.3f} kg, r = {theta[1:]} m")
     if hist:
         applied = runs["with"]["t"][np.argmax(runs["with"]["theta_hat"][:, 0] > 0)]
         print(f"  load change -> compensation          -      {1e3 * (applied - t_attach):6.0f} ms")
