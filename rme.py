@@ -285,9 +285,9 @@ class RME:
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
-                self._refine = dict(bias=bias, q=q_ref, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked,
-                     level=(q_ref, bias))                 # what the compensation should leave: the level before
+                self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
+        known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
+        self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known)
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -296,7 +296,7 @@ class RME:
         self._refine = None
         Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None,
-                     level=(r["q"], r["bias"]))
+                     level=r["known"])
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -309,8 +309,9 @@ class RME:
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
+        first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
         verdict = self._lv.judge(q, level, self.robot.payload_regressor(self._q[last[-1]]), self._phi[0],
-                                 (s.first_explained, s.min_explained), s.monitor_far)
+                                 (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
             same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
@@ -322,7 +323,7 @@ class RME:
         (reference, kind), first = verdict, verdict[1] == "first"
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first:                                # against no payload: only a clear payload counts
-            accept = lambda e, Tw, Y: e.explained >= s.first_explained
+            accept = lambda e, Tw, Y: e.explained >= first_gate
         else:                                    # the new estimate must make the level consistent again (far from
             gap = np.linalg.norm(level - reference)          # any pose seen: explain 3/4 of the gap, bias aside)
             tol = 0.25 * gap if kind == "far" else min(s.monitor_threshold, 0.5 * gap)
