@@ -4,6 +4,7 @@ model in the paper's tau_ext sign (Eq. 1)."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
@@ -181,7 +182,7 @@ class Model:
             raise ValueError(f"model: custom effects {unknown} cannot be saved (only library effects can)")
         doc = {"format": "rme effect model", "version": 1,
                "robot": {"xml": getattr(self.robot, "xml_path", None), "ee": self.robot.ee, "n": self.robot.n},
-               "fitted": self.fitted,
+               "fitted": self.fitted, "config": dataclasses.asdict(self.config),
                "effects": [{"name": e.name, "fixed": e.name in self.fixed, "params": self.params[e.name].tolist(),
                             "nonlinear": self.nl[e.name].tolist() if e.name in self.nl else None}
                            for e in self.effects]}
@@ -189,9 +190,10 @@ class Model:
             json.dump(doc, f, indent=1)
 
     @classmethod
-    def load(cls, path, robot: Robot | None = None, config: EffectConfig = EffectConfig()) -> "Model":
+    def load(cls, path, robot: Robot | None = None, config: EffectConfig | None = None) -> "Model":
         """The model `save` wrote, with every parameter as saved; robot: the arm (default: the saved MJCF and site,
-        else the Panda). ValueError naming the file and what is wrong."""
+        else the Panda); config: the effects' shapes (default: as saved, e.g. pose_bias's joints). ValueError naming
+        the file and what is wrong."""
         try:
             with open(path) as f:
                 doc = json.load(f)
@@ -204,6 +206,12 @@ class Model:
             robot = Robot.from_xml(saved["xml"], ee=saved.get("ee", "ee")) if saved.get("xml") else Robot.panda()
         if saved.get("n") not in (None, robot.n):
             raise ValueError(f"{path}: the model is for an arm of {saved['n']} joints, the robot has {robot.n}")
+        if config is None:
+            try:
+                config = EffectConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                         for k, v in (doc.get("config") or {}).items()})
+            except TypeError as err:
+                raise ValueError(f"{path}: the saved effect config does not fit EffectConfig: {err}") from None
         model = cls(robot, config)
         for item in doc.get("effects", []):
             name = item.get("name")

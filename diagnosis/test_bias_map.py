@@ -81,7 +81,7 @@ def test_a_map_fitted_on_a_load_free_log_predicts_the_plant_pose_bias_at_poses_i
 def test_a_saved_map_round_trips_exactly_and_rme_subtracts_it(tmp_path):
     _, model = calibrated()
     model.save(tmp_path / "map.json")
-    back = Model.load(tmp_path / "map.json", config=WITH_MAP)
+    back = Model.load(tmp_path / "map.json")                # the saved config offers pose_bias again
     assert back.names == ["gravity", "pose_bias"] and back.fitted
     np.testing.assert_array_equal(back.params["pose_bias"], model.params["pose_bias"])
     q = Q_READY + np.random.default_rng(3).uniform(-0.3, 0.3, size=(200, 7))
