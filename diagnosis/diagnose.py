@@ -13,6 +13,7 @@ import numpy as np
 
 from dynamics import Robot
 from diagnosis.effect_model import Model
+from diagnosis.effects import EffectConfig
 from diagnosis.findings import collect, format_findings
 from diagnosis.heldout import Selection, blocks_of, rank
 from diagnosis.logs import Log, LogConfig, load_log
@@ -253,7 +254,7 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     p = argparse.ArgumentParser(prog=prog, description="Compare the nominal model with a robot log, rank the "
                                 "missing physical effects on held-out data, add them and watch the error fall.")
     p.add_argument("log", nargs="?", help=".npz (t, q, dq, [ddq], tau_J and/or tau_ext) or libfranka-style .csv")
-    p.add_argument("--add", nargs="+", default=[], metavar="EFFECT", choices=names + ["auto"],
+    p.add_argument("--add", nargs="+", default=[], metavar="EFFECT", choices=names + ["pose_bias", "auto"],
                    help=f"effects to add and fit ('auto': the ones diagnose selects); one of {', '.join(names)}")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p.add_argument("--plot", metavar="FILE", help="save residual-over-time and residual-vs-signal plots (matplotlib)")
@@ -262,6 +263,8 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     p.add_argument("--drop-nan", action="store_true", help="drop rows with NaN/inf (their count is reported)")
     p.add_argument("--xml", metavar="ARM.xml", help="the arm's MJCF (default: the project's Panda)")
     p.add_argument("--ee", default="ee", metavar="SITE", help="the end-effector site in --xml (default: ee)")
+    p.add_argument("--bias-map", action="store_true", help="offer pose_bias, the per-joint map of the load-free "
+                   "torque over the pose (opt-in: it absorbs any static error); fit it on a log of still holds")
     p.add_argument("--save", metavar="MODEL.json", help="save the model after --add (Model.load reads it; "
                    "RME(correction=Model.load(path)) uses it)")
     args = p.parse_args(argv)
@@ -277,7 +280,8 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
         log = load_log(args.log, LogConfig(drop_nan=args.drop_nan))
         if log.n != robot.n:
             raise ValueError(f"log: {log.n} joints, expected {robot.n} like the arm ({args.xml or 'the Panda'})")
-        out = run(log, args.add, args.model, robot=robot)
+        bias_map = args.bias_map or "pose_bias" in args.add
+        out = run(log, args.add, args.model, robot, EffectConfig(bias_joints=robot.n) if bias_map else EffectConfig())
         if args.save:
             out["added"].save(args.save)
     except ValueError as err:
@@ -292,10 +296,10 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     return 0
 
 
-def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None) -> dict:
+def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, config=EffectConfig()) -> dict:
     """compare -> diagnose -> add -> compare on a loaded log; the text report, the JSON object and the pieces."""
     robot = robot or Robot.panda()
-    model = Model.nominal(robot) if start == "nominal" else Model.static(robot)
+    model = Model.nominal(robot, config) if start == "nominal" else Model.static(robot, config)
     s = model.signals(log)                         # the log's rigid-body terms, computed once
     before = compare(model, s)
     d = diagnose(model, s)
