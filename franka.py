@@ -4,6 +4,7 @@ paper's sign (Eq. 1) is minus libfranka's tau_ext_hat_filtered; the command sent
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
 import time
@@ -100,6 +101,8 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     rec["in_flight"] = np.zeros(steps, dtype=bool)     # an estimate was running beside the loop at the cycle's end
     busy = getattr(getattr(estimator, "executor", None), "busy", lambda: False)
     k, t, missed, stopped, last_print = 0, 0.0, 0, "end", -np.inf
+    gc.collect()
+    gc.freeze()                  # what exists now is never scanned again: a collection in the loop stays short
     try:
         for k in range(steps):
             s = backend.read()
@@ -132,6 +135,8 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
         stopped = f"error: {type(err).__name__}: {err}"
         _stop(backend, safety, dry_run)
         raise
+    finally:
+        gc.unfreeze()
     _stop(backend, safety, dry_run)
     log = {key: v[:k] for key, v in rec.items()}
     return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds), log
