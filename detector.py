@@ -274,8 +274,9 @@ class Levels:
             self.rejected = None
         return back
 
-    def judge(self, q, level, Y, mass, gates, far):
-        """What a steady residual `level` (n,) at pose q means (Y (n, 4): the payload regressor there, mass: the one
+    def judge(self, q, level, regressor, mass, gates, far):
+        """What a steady residual `level` (n,) at pose q means (regressor() -> (n, 4): the payload regressor there,
+        called only if a payload must be tested; mass: the one
         compensated now, gates: (first, later) explained shares for payload_like): None when it needs nothing
         (explained here: the level is followed; judged before; no payload), "new" at a pose never seen (taken as
         explained) unless the level is more than `far` [Nm] from the nearest level known (no sensor bias reaches
@@ -295,7 +296,7 @@ class Levels:
             self.explained.put(q, level)                               # explained: follow the slow bias drift
             return None
         reference = np.zeros(len(level)) if first else trusted
-        if not payload_like(Y, level - reference, mass, gates[0] if first else gates[1]):
+        if not payload_like(regressor(), level - reference, mass, gates[0] if first else gates[1]):
             (self.explained if first else self.muted).put(q, level)    # the bias; or e.g. a person holding the arm
             return None
         return reference, kind

@@ -173,14 +173,15 @@ class RME:
 
     def _estimate(self, q, tau):
         """Network prior and VI on checked, referred, corrected windows (or lists): (Estimate, Y or their list)."""
-        start, many, Ys, priors, speeds = time.perf_counter(), isinstance(q, list), [], [], []
+        start, many, Ys, priors = time.perf_counter(), isinstance(q, list), [], []
         for qi, ti in zip(q if many else [q], tau if many else [tau]):
             _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
-            Ys.append(self.robot.payload_regressor_from(J, R)), speeds.append(vi.joint_speed(qi, 1 / self.settings.rate))
+            Ys.append(self.robot.payload_regressor_from(J, R))
             priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if self.net is not None else np.zeros(4))
         prior = np.mean(priors, axis=0)
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
-        post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng, speed=speeds if many else speeds[0],
+        speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
+        post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng, speed=speed,
                       sigma_prior=None if self.net is None else self.net.prior_std(prior, self.settings.vi.sigma_prior, R[-1]))
         return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
                         time.perf_counter() - start, post.iterations, post.converged), (Ys if many else Ys[0])
@@ -280,13 +281,13 @@ class RME:
                             s.min_explained):      # a push, a bias step: no point mass under gravity explains it
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
             return
+        known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
         def then(e):
             self._lv.rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
                 self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
         self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known)
 
     def _on_rest(self):
@@ -295,8 +296,7 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None,
-                     level=r["known"])
+        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None, level=r["known"])
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -310,7 +310,7 @@ class RME:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        verdict = self._lv.judge(q, level, self.robot.payload_regressor(self._q[last[-1]]), self._phi[0],
+        verdict = self._lv.judge(q, level, lambda: self.robot.payload_regressor(self._q[last[-1]]), self._phi[0],
                                  (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
