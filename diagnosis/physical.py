@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
+from motion.inertia import inertia_of, pseudo_inertia, params_of as body_params   # noqa: F401 (re-exported)
+
 KINDS = ("", "tilt", "rigid_body")          # the named constraints an effect may declare beside its bounds
 
 
@@ -59,32 +61,11 @@ def tilt_angles(c, g, iterations: int = 20):
 
 
 # --- rigid body: p = (m, m cx, m cy, m cz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz), I about the frame's origin ---------------
-_I_INDEX = ((4, 5, 7), (5, 6, 8), (7, 8, 9))
-
-
-def pseudo_inertia(p):
-    """J (4, 4) = [[0.5 tr(I) E - I, h], [h^T, m]] of the 10 parameters p; J >= 0 iff p is a physical rigid body."""
-    p = np.asarray(p, dtype=float)
-    I = p[np.array(_I_INDEX)]
-    J = np.empty((4, 4))
-    J[:3, :3] = 0.5 * np.trace(I) * np.eye(3) - I
-    J[:3, 3] = J[3, :3] = p[1:4]
-    J[3, 3] = p[0]
-    return J
-
-
-def body_params(J):
-    """The inverse of pseudo_inertia: p (10,) from J (4, 4); I = tr(S) E - S for S = J[:3, :3]."""
-    S = J[:3, :3]
-    I = np.trace(S) * np.eye(3) - S
-    return np.array([J[3, 3], J[0, 3], J[1, 3], J[2, 3], I[0, 0], I[0, 1], I[1, 1], I[0, 2], I[1, 2], I[2, 2]])
-
-
 def body_issues(p, tol: float = 1e-9) -> list:
     """What makes p non-physical, [(issue, value)]: ('m', m < 0), ('Ixx', Ixx < 0) ..., ('triangle inequality', the
     worst Ixx + Iyy - Izz and its permutations), ('min eigenvalue of the pseudo-inertia', < 0); [] if physical."""
     p = np.asarray(p, dtype=float)
-    d = np.diag(p[np.array(_I_INDEX)])
+    d = np.diag(inertia_of(p))
     scale = tol * max(np.abs(p).max(), 1e-12)
     out = [("m", float(p[0]))] if p[0] < -scale else []
     out += [(n, float(v)) for n, v in zip(("Ixx", "Iyy", "Izz"), d) if v < -scale]
