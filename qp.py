@@ -58,9 +58,8 @@ def _checked_problem(H, g, A, b):
                 raise ValueError(f"{name}: expected shape {what}, found {v.shape}")
     # a cheap screen (BLAS dot products cost a tenth of a NumPy call): a sum of squares is inf or NaN where an
     # entry is not finite (or it overflows); only a screen that fails pays for the checks that name the culprit
-    h, ddot = H.ravel(), blas.ddot
-    squares = ddot(g, g) + ddot(h, h) + (ddot(b, b) + ddot(A.ravel(), A.ravel()) if len(b) else 0.0)
-    if squares < math.inf:
+    ddot, h, a = blas.ddot, H.ravel(), A.ravel()
+    if ddot(g, g) + ddot(h, h) + (ddot(b, b) + ddot(a, a) if len(b) else 0.0) < math.inf:
         d = H - H.T                                   # antisymmetric: its max is max |H - H^T|
         if d.item(d.argmax()) <= 1e-10:
             return H, g, A, b
@@ -92,11 +91,12 @@ def kkt_residual(H, g, A, b, x, mult, active):
 def _residual(H, g, A, x, mult, W, r, r_min):
     """kkt_residual with the slacks r = A x - b (m,) and their minimum r_min already known."""
     st = blas.dgemv(1.0, H.T, x, 1.0, g, 0, 1, 0, 1, 1, 0)          # H x + g (H.T: H's memory, column-major)
+    comp = 0.0
     if W:
         blas.dgemv(-1.0, A.T, mult, 1.0, st, 0, 1, 0, 1, 0, 1)      # - A^T lambda, in place
-    lam, r_list = mult.tolist(), r.tolist()
-    worst = max(abs(st.item(blas.idamax(st))), -float(r_min), 0.0,
-                max((abs(lam[i] * r_list[i]) for i in W), default=0.0))
+        lam, r_list = mult.tolist(), r.tolist()
+        comp = max([abs(lam[i] * r_list[i]) for i in W])
+    worst = max(abs(st.item(blas.idamax(st))), -float(r_min), 0.0, comp)
     return worst if worst == worst and blas.dasum(st) < math.inf else np.inf    # NaN reads as inf
 
 
@@ -105,17 +105,15 @@ def _checked_answer(A, b, x, status):
     if not len(b):
         return status, b[:], 0.0
     r = blas.dgemv(1.0, A.T, x, -1.0, b, 0, 1, 0, 1, 1, 0)           # A x - b
-    r_min = r[r.argmin()]
-    if status == "optimal" and not _feasible(A, b, x, r, r_min):
+    r_min = r.item(r.argmin())
+    if status == "optimal" and not (r_min >= -1e-9 or _feasible(A, b, x, r)):   # every row's tolerance >= 1e-9
         status = "degenerate"
     return status, r, r_min
 
 
-def _feasible(A, b, x, r, r_min, tol=1e-9):
-    """A x >= b (r = A x - b, r_min its minimum) within tol times each row's rounding scale 1 + |b_i| + |a_i| |x|;
-    False on NaN or overflow. The final check that turns a broken answer into status "degenerate"."""
-    if r_min >= -tol:                                 # enough: every row's tolerance is at least tol
-        return True
+def _feasible(A, b, x, r, tol=1e-9):
+    """A x >= b (r = A x - b) within tol times each row's rounding scale 1 + |b_i| + |a_i| |x|; False on NaN or
+    overflow. The final check that turns a broken answer into status "degenerate"."""
     r = r + tol * (1.0 + np.abs(b) + np.abs(A) @ np.abs(x))
     return bool(r[r.argmin()] >= 0.0)
 
@@ -170,198 +168,188 @@ def _warm_answer(A, b, AW, AHW, x, s, W):
 
 def _unit(VT, u, b, active, max_iterations, tol, warm=True):
     """GI's dual method for min 1/2 |y|^2 + u^T y s.t. V y >= b (H = I; V^T (n, m), u (n,), b (m,)): (y (n,),
-    status, iterations, W, multipliers (m,)). Tries a warm start as the answer itself first (warm=True).
-    u is overwritten (it becomes y)."""
+    status, iterations, W, multipliers (m,)). Tries a warm start as the answer itself first (warm=True)."""
     n, m = u.shape[0], b.shape[0]
     uu = blas.ddot(u, u)                              # |x|_H^2: finite iff u is (but for overflow)
-    y = blas.dscal(-1.0, u)                           # the unconstrained minimiser, in place
     if not m or not uu < math.inf:
-        return y, ("optimal" if uu < math.inf else "degenerate"), 0, [], np.zeros(m)
-    s = blas.dgemv(1.0, VT, y, -1.0, b, 0, 1, 0, 1, 1, 0)    # (m,) slacks V y - b
-    if not active and s[s.argmin()] >= 0.0:
-        return y, "optimal", 0, [], np.zeros(m)
+        return -u, ("optimal" if uu < math.inf else "degenerate"), 0, [], np.zeros(m)
     if warm and active and len(active) <= n:          # the warm start is often the answer
-        W = list(dict.fromkeys(active))
-        VW = VT.T.take(W, axis=0)
-        out = _warm_answer(VT.T, b, VW, VW, y, s, W)
+        W, y, V = list(dict.fromkeys(active)), -u, VT.T     # V (m, n): rows v_i
+        VW = V.take(W, axis=0)
+        out = _warm_answer(V, b, VW, VW, y, V @ y - b, W)
         if out is not None:
             return out[0], "optimal", 0, W, out[1]
-    norms2 = np.einsum("ij,ij->j", VT, VT)            # |a_i|_{H^-1}^2 = |v_i|^2
+    norms2 = np.add.reduce(VT * VT)                   # |a_i|_{H^-1}^2 = |v_i|^2 (m,)
     total = blas.dasum(norms2)                        # inf or NaN on overflow or NaN
     if not total < math.inf:
-        return y, "degenerate", 0, [], np.zeros(m)
-    if norms2.item(norms2.argmin()) > 1e-24 * (1.0 + total):
-        inv_norm = norms2 ** -0.5
-    else:                                             # a zero row reads 0 >= b_i
+        return -u, "degenerate", 0, [], np.zeros(m)
+    norms = np.sqrt(norms2)
+    if norms2.item(norms2.argmin()) <= 1e-24 * (1.0 + total):    # a zero row reads 0 >= b_i
         usable = norms2 > 1e-24 * (1.0 + total)
         if (b[~usable] > 0.0).any():
-            return y, "infeasible", 0, [], np.zeros(m)
-        inv_norm = np.where(usable, np.where(usable, norms2, 1.0) ** -0.5, 0.0)     # 0 >= 0: inert
+            return -u, "infeasible", 0, [], np.zeros(m)
+        norms[~usable] = np.inf                       # scaled to 0 >= 0: inert
     # rows scaled to |v_i| = 1, so that slacks and multipliers mean the same for every row; row i counts as
     # violated when its scaled slack is below -tol (1 + |x|_H) - tol |b_i| / |v_i| (its rounding scale)
-    tols = (tol * (1.0 + math.sqrt(uu)), tol, (b * inv_norm).tolist())
-    ys, status, it, W, lam = _solve(VT * inv_norm, y, s * inv_norm, active, max_iterations, tols)
-    mult, inv_norm = np.zeros(m), inv_norm.tolist()
+    Z, Y, Yf, bs = _tableau(VT, u, b, norms)
+    W = []
+    skipped, az_warm, ok = _warm_start(Y, Yf, W, active, n, m) if active else (0, 1.0, True)
+    status, steps, az_loop = (_loop(Y, Yf, W, n, m, max_iterations - skipped, tol * (1.0 + math.sqrt(uu)), tol,
+                                    bs.tolist()) if ok else ("degenerate", 0, 1.0))
+    q, nm = len(W), n + m
+    ys, lam = Yf[m:nm], Yf[nm:nm + q].tolist()       # y (a view into Y), lambda_W
+    if status == "optimal" and q and (skipped or az_loop < 1e-3 or az_warm < 1e-3):   # polish: rounding grows
+        VW = Z[:, 1:m + 1].T.take(W, axis=0)          # as 1 / a^T Hop a, and with the jumps of a warm start's drops
+        _, lam_p, bad = lapack.dposv(VW @ VW.T, bs.take(W) - VW @ Z[:, 0])    # the exact minimiser on W
+        if not bad and lam_p[lam_p.argmin()] >= -1e-9 * (1.0 + np.abs(lam_p).max()):
+            ys, lam = Z[:, 0] + lam_p @ VW, lam_p.tolist()
+    mult, norms = np.zeros(m), norms.tolist()
     for i, lam_i in zip(W, lam):
         if lam_i > 0.0:
-            mult[i] = lam_i * inv_norm[i]             # back to the unscaled rows
+            mult[i] = lam_i / norms[i]                # back to the unscaled rows
     if status == "optimal" and not math.isfinite(math.fsum(lam)):
         status = "degenerate"
-    return ys, status, it, W, mult
+    return ys, status, skipped + steps, W, mult
 
 
-def _solve(VT, y, s, active, max_iterations, tols):
-    """Set-up, warm start, loop and polish of GI on unit rows V (m, n) from y (n,) with slacks s (m,): (y, status,
-    iterations, W, lambda (list)).
+def _tableau(VT, u, b, norms):
+    """GI's operators for the active rows N (q, n) (GI 1983, Sec. 3; here H = I), Hop = I - N^T (N N^T)^-1 N (primal
+    step z = Hop a) and N* = (N N^T)^-1 N (dual step r = N* a), kept as their products with the iterate, every
+    scaled row v_i d_i and every unit vector e_k, in one tableau (R = m + 2n, C = 1 + m + n):
 
-    GI's operators for the active rows N (q, n) (GI 1983, Sec. 3; here H = I), Hop = I - N^T (N N^T)^-1 N (primal
-    step z = Hop a) and N* = (N N^T)^-1 N (dual step r = N* a), are kept as their products with every row and
-    every unit vector, next to the iterate: Y = [Hop V^T, Hop, y; V Hop V^T, V Hop, V y - b; -N* V^T, -N*, lambda]
-    ((2n + m, m + n + 1); column p holds (z, V z, -r) of row p). An add is one rank-one update of Y that also
-    takes GI's full step; a drop is one rank-one downdate read off the dropped row of -N* (N* N*^T =
-    (N N^T)^-1), so no step solves a system. Every step is a few BLAS calls on Y's memory (level 1 with offsets
-    and strides where it suffices: they cost a tenth of a NumPy call). Answers reached through nearly dependent
-    rows or a warm start's drops are polished by the exact solve on the final active set.
-    """
-    n, m = y.shape[0], s.shape[0]
-    nm, R, C = n + m, 2 * n + m, n + m + 1
-    Y = np.zeros((R, C), order="F")                  # column-major: BLAS updates it in place
-    Yf = Y.T.ravel()                                  # flat view: Y[i, j] = Yf[i + j R]
-    Y[:n, :m] = VT
-    Yf[m * R:nm * R:R + 1] = 1.0                      # Hop = I on the unit vectors
-    Yf[nm * R:nm * R + n] = y                         # the iterate column: y, V y - b, lambda
-    Y[n:nm] = blas.dgemm(1.0, VT, Y[:n], 0.0, None, 1)      # V times the top rows: V V^T, V, V y
-    Yf[nm * R + n:nm * R + nm] = s
-    W = []
-    skipped, az_warm, ok = _warm_start(Y, W, active, n, m) if active else (0, 1.0, True)
-    status, steps, az_loop = _loop(Y, W, n, m, max_iterations - skipped, tols) if ok else ("degenerate", 0, 1.0)
-    q = len(W)
-    ys, lam = Yf[nm * R:nm * R + n].copy(), Yf[nm * R + nm:nm * R + nm + q].tolist()
-    if status == "optimal" and q and (skipped or az_loop < 1e-3 or az_warm < 1e-3):   # polish: rounding grows
-        VW = VT.T.take(W, axis=0)                     # as 1 / a^T Hop a, and with the jumps of a warm start's drops
-        _, lam_p, bad = lapack.dposv(VW @ VW.T, -s.take(W))     # the exact minimiser on W
-        if not bad and lam_p[lam_p.argmin()] >= -1e-9 * (1.0 + np.abs(lam_p).max()):
-            ys, lam = y + lam_p @ VW, lam_p.tolist()
-    return ys, status, skipped + steps, W, lam
+        Y = [V y - b, V Hop V^T, V Hop;  y, Hop V^T, Hop;  lambda, -N* V^T, -N*]      (rows scaled: V = D V, b = D b)
+
+    Column 1 + p holds (V z, z, -r) for row p, and Y[:m + n, 1:] = [V; I] Hop [V^T, I] is symmetric, so row p is
+    (s_p, column 1 + p above row m + n). At the start (no active rows) Y = [V; I; 0] [y, V^T, I], one product.
+    An add is one rank-one update of Y that also takes GI's full step (_add); a drop is one rank-one downdate read
+    off the dropped row of -N* (_drop; N* N*^T = (N N^T)^-1), so no step solves a system. Column-major, so that the
+    iterate and every row's column are contiguous for the BLAS calls of the loop.
+    Returns (Z = [y, V^T, I, 0] (n, 1 + R), Y (R, C) column-major, Yf its memory: Y[i, j] = Yf[i + j R], D b (m,))
+    for V^T (n, m), u (n,), b (m,), D = 1 / norms (m,)."""
+    n, m = VT.shape
+    C = 1 + m + n
+    Z = np.zeros((n, 1 + m + 2 * n), order="F")
+    Zf = Z.T.ravel()                                  # Z[i, j] = Zf[i + j n]
+    np.negative(u, out=Zf[:n])                        # y = -u: the unconstrained minimiser
+    np.divide(VT, norms, out=Z[:, 1:m + 1])
+    Zf[C * n - n * n:C * n:n + 1] = 1.0
+    Y = blas.dgemm(1.0, Z[:, 1:], Z[:, :C], 0.0, None, 1)
+    Yf, bs = Y.T.ravel(), b / norms
+    blas.daxpy(bs, Yf, m, -1.0)                       # the slacks: V y - b
+    return Z, Y, Yf, bs
 
 
-def _warm_start(Y, W, active, n, m):
+def _warm_start(Y, Yf, W, active, n, m):
     """Make the distinct, independent rows of `active` active by full steps (the equality-constrained minimiser),
     then drop the most negative multiplier until all are >= 0 (a dual-feasible start). Returns (the changes that
     were not adds: skipped and dropped rows, the smallest a^T Hop a of an add, False on a breakdown)."""
-    nm, R, skipped, az_min = n + m, 2 * n + m, 0, 1.0
-    Yf = Y.T.ravel()
-    x, w = np.empty(R), np.empty(nm + 1)
+    nm, R, skipped, az_min = n + m, m + 2 * n, 0, 1.0
+    xw = np.empty(R + 1)
     for p in dict.fromkeys(active):
-        az = Yf.item(n + p + p * R)
+        az = Yf.item(p + (1 + p) * R)
         if len(W) == n or not az > 1e-12:            # dependent on the rows already active, or a zero row
             skipped += 1
             continue
-        _add(Y, Yf, W, p, az, x, w)
+        _add(Y, Yf, W, p, az, xw)
         az_min = min(az_min, az)
     while W:
         q = len(W)
-        lam = Yf[nm * R + nm:nm * R + nm + q].tolist()
+        lam = Yf[nm:nm + q].tolist()
         j = min(range(q), key=lam.__getitem__)
         if lam[j] >= 0.0:
             break
         p = W[j]
         if not _drop(Y, Yf, W, j, n, m):
             return skipped, az_min, False
-        # x' = x - lambda_j Hop' a_j, lambda' = lambda + lambda_j r': the iterate column minus lambda_j column p
-        blas.daxpy(Yf, Yf, R, -lam[j], p * R, 1, nm * R, 1)
+        # x' = x - lambda_j Hop' a_j, lambda' = lambda + lambda_j r': the iterate column minus lambda_j column 1 + p
+        blas.daxpy(Yf, Yf, R, -lam[j], (1 + p) * R, 1, 0, 1)
         skipped += 1
     return skipped, az_min, True
 
 
-def _loop(Y, W, n, m, budget, tols):
+def _loop(Y, Yf, W, n, m, budget, tol0, tol, bs):
     """GI's main loop: add the most violated row p; partial steps drop the active row whose multiplier reaches 0.
-    tols = (tol (1 + |x|_H), tol, b_i / |v_i| (list)): row i counts as violated below -tols[0] - tol |b_i| / |v_i|.
+    Row i counts as violated when its scaled slack is below -tol0 - tol |bs_i| (bs: b_i / |v_i|, a list).
     Returns (status, iterations, the smallest a^T Hop a of an add). The add is _add inlined: this is the hot path,
-    where every Python-level call counts."""
-    nm, R, it, az_min, inf = n + m, 2 * n + m, 0, 1.0, math.inf
-    tol0, tol, bs = tols
-    Yf, ones, x, w = Y.T.ravel(), np.ones(n), np.empty(2 * n + m), np.empty(n + m + 1)
-    dasum, ddot, dcopy, dger, item = blas.dasum, blas.ddot, blas.dcopy, blas.dger, Y.T.ravel().item
-    lam0 = nm * R + nm                                # Yf index of lambda_0
-    s = Yf[nm * R + n:lam0]                           # scaled slacks (view)
+    where every Python-level call counts (a memoryview reads and writes single entries at a third of the cost)."""
+    nm, C, R, it, az_min, inf = n + m, n + m + 1, m + 2 * n, 0, 1.0, math.inf
+    xw = np.empty(R + 1)
+    Ym, xm, w, x = memoryview(Yf), memoryview(xw), xw[:C], xw[1:]    # row p, column 1 + p: see _add
+    dcopy, dger = blas.dcopy, blas.dger
+    s = Yf[:m]                                        # scaled slacks (view)
     q = len(W)
     while True:
         p = int(s.argmin())
-        sp = s.item(p)
+        sp = Ym[p]
         if not sp < -tol0 - tol * abs(bs[p]):
             return "optimal", it, az_min              # every row satisfied within its tolerance
         lam_p = 0.0
         while True:
             if it >= budget:
                 return "max_iterations", it, az_min
-            pR = p * R
-            az = item(n + p + pR)                     # a_p^T Hop a_p, in [0, 1]
+            col = (1 + p) * R                         # Yf index of column 1 + p: (V z, z, -r)
+            az = Ym[col + p]                          # a_p^T Hop a_p, in [0, 1]
             t2 = -sp / az if az > 1e-12 and q < n else inf     # full step: row p becomes active
             t1, j = inf, -1
-            # partial step: lambda_i = 0 first, at t = lambda_i / r_i, for the entries -r_i < 0 of column p
-            # (sum |-r| - sum -r = twice their mass: two BLAS calls rule the common case out)
-            if q and dasum(Yf, q, nm + pR, 1) - ddot(Yf, ones, q, nm + pR, 1, 0, 1) > 2e-12:
-                c3, lam = Yf[nm + pR:nm + pR + q].tolist(), Yf[lam0:lam0 + q].tolist()     # -r, lambda
-                for i in range(q):
-                    if c3[i] < -1e-12 and -lam[i] / c3[i] < t1:
-                        t1, j = -lam[i] / c3[i], i
+            if q:                                     # partial step: lambda_i = 0 first, at t = lambda_i / r_i,
+                c3 = Ym[col + nm:col + nm + q].tolist()    # for the entries -r_i < 0
+                if min(c3) < -1e-12:
+                    lam = Ym[nm:nm + q].tolist()
+                    for i in range(q):
+                        if c3[i] < -1e-12 and -lam[i] / c3[i] < t1:
+                            t1, j = -lam[i] / c3[i], i
             if t2 <= t1 and t2 < inf:
                 it += 1
                 if az < az_min:
                     az_min = az
-                dcopy(Yf, x, R, pR, 1, 0, 1)          # _add: column p, (z, V z, -r)
-                x[nm + q] = 1.0
-                dcopy(Yf, w, nm + 1, n + p, R, 0, 1)  # row n + p
+                dcopy(Yf, xw, R, col, 1, 1, 1)        # _add, inlined
+                xm[0] = sp
+                xm[C + q] = 1.0
                 dger(-1.0 / az, x, w, 1, 1, Y, 1, 1, 1)
                 W.append(p)
                 if lam_p:
-                    Yf[lam0 + q] += lam_p             # the multiplier gained in the partial steps before
+                    Ym[nm + q] += lam_p               # the multiplier gained in the partial steps before
                 q += 1
                 break
             if j < 0:                                 # no step is bounded: the dual is unbounded (or NaN)
                 return ("infeasible" if t2 == inf else "degenerate"), it, az_min
             it += 1
-            blas.daxpy(Yf, Yf, R, t1, pR, 1, nm * R, 1)    # y, slacks, lambda move by t1 (z, V z, -r)
+            blas.daxpy(Yf, Yf, R, t1, col, 1, 0, 1)   # slacks, y, lambda move by t1 (V z, z, -r)
             lam_p += t1
             if not _drop(Y, Yf, W, j, n, m):
                 return "degenerate", it, az_min
             q -= 1
-            sp = s.item(p)
+            sp = Ym[p]
 
 
-def _add(Y, Yf, W, p, az, x, w):
+def _add(Y, Yf, W, p, az, xw):
     """Row p joins the active set with GI's full step: Hop' = Hop - z z^T / a^T z, N*' = [N* - r z^T / a^T z;
-    z^T / a^T z], applied to every column of Y; on the iterate column it moves (y, slacks, lambda) by t (z, V z, -r)
-    with t = -s_p / a^T z, and the new multiplier is t. Row n + p of Y is z^T times each column. x (2n + m,),
-    w (m + n + 1,): scratch."""
+    z^T / a^T z], applied to every column of Y; on the iterate column it moves (slacks, y, lambda) by t (V z, z, -r)
+    with t = -s_p / a^T z, and the new multiplier is t. That is Y -= x w^T / a^T z with x = column 1 + p (and 1 in
+    the new row of -N*) and w = row p = (s_p, x[:m + n]) (the symmetric block): one copy fills both, as
+    xw = (s_p, x) (R + 1,), x = xw[1:], w = xw[:C]."""
     R, C = Y.shape
-    n = (R - C + 1)
-    blas.dcopy(Yf, x, R, p * R, 1, 0, 1)              # column p: (z, V z, -r)
-    x[R - n + len(W)] = 1.0                           # the new row of -N* is -z^T (column) / a^T z
-    blas.dcopy(Yf, w, C, n + p, R, 0, 1)              # row n + p: z^T (column)
-    blas.dger(-1.0 / az, x, w, 1, 1, Y, 1, 1, 1)     # Y -= x w^T / a^T z, in place
+    blas.dcopy(Yf, xw, R, (1 + p) * R, 1, 1, 1)       # xw[1:] = column 1 + p
+    xw[0] = Yf.item(p)
+    xw[C + len(W)] = 1.0                              # the new row of -N* is -z^T (column) / a^T z
+    blas.dger(-1.0 / az, xw[1:], xw[:C], 1, 1, Y, 1, 1, 1)     # Y -= x w^T / a^T z, in place
     W.append(p)
 
 
 def _drop(Y, Yf, W, j, n, m):
     """Active row j leaves (GI 1983, in the metric of H = I): with k = N*_j^T (n,) and c = N* k = (N N^T)^-1 e_j
-    (q,), Hop' = Hop + k k^T / c_j and N*_i' = N*_i - (c_i / c_j) k^T. Row j of -N* in Y gives k (unit-vector
-    columns), V k (row columns) and k^T times every column, so the downdate needs q dot products. The iterate
-    column is left alone. False if c_j is not positive (a breakdown)."""
-    nm, R, q = n + m, 2 * n + m, len(W)
-    r = blas.dcopy(Yf, np.empty(nm + 1), nm + 1, nm + j, R, 0, 1)     # -(k^T V^T, k^T, lambda_j)
-    c = [blas.ddot(Yf, r, n, nm + i + m * R, R, m, 1) for i in range(q)]    # N* k  (q,)
-    cj = c[j]
+    (q,), Hop' = Hop + k k^T / c_j and N*_i' = N*_i - (c_i / c_j) k^T. Row m + n + j of Y, -k^T times each column,
+    gives (V k, k) (the symmetric block) and c = N* k in one product. The iterate column is left alone.
+    False if c_j is not positive (a breakdown)."""
+    nm, q, R = n + m, len(W), m + 2 * n
+    r, v = blas.dcopy(Yf, np.empty(nm + 1), nm + 1, nm + j, R), np.zeros(R)    # r = (lambda_j, -(V k)^T, -k^T)
+    blas.dgemv(-1.0, Y[nm:nm + q, 1 + m:], r, 0.0, v, 1 + m, 1, nm, 1, 0, 1)     # v[nm:] = -N* k = -c (q,)
+    cj = -v.item(nm + j)
     if not cj > 0.0:
         return False
-    v = np.zeros(R)                                   # -(k, V k, -c)
-    blas.dcopy(r, v, n, m, 1, 0, 1)
-    blas.dcopy(r, v, m, 0, 1, n, 1)
-    for i in range(q):
-        v[nm + i] = -c[i]
-    r[nm] = 0.0
-    blas.dger(1.0 / cj, v, r, 1, 1, Y, 1, 1, 1)      # Y += (k, V k, -c) (k^T Y) / c_j, in place
+    blas.dcopy(r, v, nm, 1)                           # v = -(V k, k, c)
+    r[0] = 0.0
+    blas.dger(1.0 / cj, v, r, 1, 1, Y, 1, 1, 1)       # Y += (V k, k, c) (k^T Y) / c_j, in place
     Y[nm + j:nm + q - 1] = Y[nm + j + 1:nm + q]
     Y[nm + q - 1] = 0.0
     del W[j]

@@ -320,3 +320,24 @@ def test_dual_active_set_from_inverse_matches_solve_qp_from_any_warm_start():
             assert status == "optimal" and np.abs(x - x_ref).max() <= 1e-9 * max(1.0, np.abs(x_ref).max())
             assert np.allclose(mult, info.multipliers, rtol=1e-7, atol=1e-9)
             assert kkt_violation(H, g, A, b, x, mult) <= 1e-8
+
+
+def test_qp_matches_quadprog_with_zero_duplicate_and_rescaled_rows():
+    """Rows of zero (0 >= b_i, b_i <= 0: inert), duplicated and rescaled (by 1e-3 .. 1e3) rows leave the optimum of
+    the benchmark's problems unchanged: x equals quadprog's on the plain problem, cold and from a wrong warm start,
+    and a zero row never carries a multiplier."""
+    pytest.importorskip("quadprog")
+    rng = np.random.default_rng(23)
+    for _ in range(100):
+        H, g, A, b = random_problem(rng)
+        x_ref, _ = quadprog_solve(H, g, A, b)
+        m = len(b)
+        k = int(rng.integers(0, m))
+        scale = 10.0 ** rng.uniform(-3, 3, m + 1)
+        A2 = np.vstack([A, np.zeros((2, 7)), A[k]]) * np.concatenate([scale[:m], [1.0, 1.0], scale[m:]])[:, None]
+        b2 = np.concatenate([b, [0.0, -1.0], [b[k]]]) * np.concatenate([scale[:m], [1.0, 1.0], scale[m:]])
+        for active in (None, rng.permutation(m + 3)[:5]):
+            x, info = solve_qp(H, g, A2, b2, active=active)
+            assert info.status == "optimal" and np.abs(x - x_ref).max() <= 1e-9 * max(1.0, np.abs(x_ref).max())
+            assert info.multipliers[m] == 0.0 and info.multipliers[m + 1] == 0.0
+            assert kkt_violation(H, g, A2, b2, x, info.multipliers) <= 1e-7 * max(1.0, np.abs(info.multipliers).max())
