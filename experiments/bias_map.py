@@ -43,21 +43,28 @@ def record_holds(plant: Plant, center=Q_READY, config: HoldsConfig = HoldsConfig
     return {k: log[k] for k in ("t", "q", "dq", "tau_J", "tau_ext")}, log["t"][still[:len(log["t"])]]
 
 
-def fit_bias_map(raw: dict, still_times, robot, every: int = 5) -> tuple:
-    """Model.static(robot, EffectConfig(bias_joints=n)) + "pose_bias" fitted on every `every`-th of the raw log's samples at still_times (a real
-    robot's log goes the same way, through logs.load_log). Returns (model, info of Model.fit)."""
+def fit_bias_map(raw: dict, still_times, robot, every: int = 5, friction: bool = False) -> tuple:
+    """Model.static(robot, EffectConfig(bias_joints=n)) + "pose_bias" fitted on every `every`-th of the raw log's samples
+    at still_times (a real robot's log goes the same way, through logs.load_log). friction: Model.nominal + "pose_bias"
+    + "sigmoid" (Gaz joint friction) + "rotor", fitted on every sample from the first still one on, moves included
+    (the moves of the holds sweep the joints' speed through zero). Returns (model, info of Model.fit)."""
     log = prepare(raw, source="load-free holds")
     rows = np.isin(np.round(log.t / log.info["dt"]), np.round(np.asarray(still_times) / log.info["dt"]))
     if rows.sum() < 100:
         raise ValueError(f"still_times: expected at least 100 still samples in the log, found {int(rows.sum())}")
+    if friction:                 # the filtered torques and M ddq pass the same filter (logs.prepare): moves fit too
+        model = Model.nominal(robot, EffectConfig(bias_joints=robot.n)).add("pose_bias").add("sigmoid").add("rotor")
+        rows = log.t >= log.t[rows][0]
+        return model, model.fit(log, rows=np.flatnonzero(rows)[::every])
     model = Model.static(robot, EffectConfig(bias_joints=robot.n)).add("pose_bias")        # static effects, unfiltered: the still rows alone suffice,
     return model, model.fit(log.rows(np.flatnonzero(rows)[::every]))   # every k-th (the filter correlates them)
 
 
-def calibrate(plant: Plant, center=Q_READY, config: HoldsConfig = HoldsConfig(), rng=None) -> Model:
-    """record_holds then fit_bias_map: the map of the plant's load-free torque around center, ready for RME."""
+def calibrate(plant: Plant, center=Q_READY, config: HoldsConfig = HoldsConfig(), rng=None, friction=True) -> Model:
+    """record_holds then fit_bias_map: the map of the plant's load-free torque around center (with its joint friction
+    unless friction=False), ready for RME."""
     raw, still = record_holds(plant, center, config, rng)
-    return fit_bias_map(raw, still, plant.robot)[0]
+    return fit_bias_map(raw, still, plant.robot, friction=friction)[0]
 
 
 def map_error(plant: Plant, model: Model, q) -> np.ndarray:

@@ -32,6 +32,7 @@ class ExploreSettings:
     #                                turn at 2.61 rad/s, panda_facts.md)
     settle: float = 0.2            # s at the tilted target before the window may end (the DS converges at 8 /s)
     window: int = 200              # samples of each pose's window (RME's own, Sec. 4)
+    reference: int = 400           # samples, at most, of the still stretch before the change both windows refer to
     still_speed: float = 0.04      # rad/s: every joint slower than this counts as still (the DS still creeps
     #                                back at 0.02-0.04 rad/s for 0.5 s after the tilt; friction then < 0.1 Nm)
     rest_before: float = 0.25      # s the arm must have been still, with the estimate applied, before exploring
@@ -47,6 +48,7 @@ class ExploreSettings:
                   ("speed", 0 < self.speed <= 2.0, "a speed in (0, 2] rad/s"),
                   ("settle", self.settle >= 0, "a time >= 0 s"), ("rest_before", self.rest_before >= 0, "a time >= 0 s"),
                   ("window", isinstance(self.window, int) and 20 <= self.window <= 1000, "20..1000 samples"),
+                  ("reference", isinstance(self.reference, int) and 1 <= self.reference <= 2000, "1..2000 samples"),
                   ("still_speed", self.still_speed > 0, "a speed > 0 rad/s"),
                   ("push_threshold", self.push_threshold > 0, "a torque > 0 Nm"),
                   ("pivot", self.pivot in ("wrist", "ee"), "'wrist' or 'ee'"),
@@ -154,8 +156,7 @@ class Explorer:
     # --- the loop ------------------------------------------------------------------------------------------
     def update(self, q, dq, tau_ext):
         comp = self.rme.update(q, dq, tau_ext)
-        keep = len(self._q)
-        i = self._k % keep
+        i = self._k % len(self._q)
         self._q[i], self._dq[i], self._tau[i] = q, dq, tau_ext
         self._k += 1
         self._still = self._still + 1 if np.abs(dq).max() < self.settings.still_speed else 0
@@ -190,7 +191,7 @@ class Explorer:
         if np.max(e.std[1:]) <= s.std_threshold:
             return
         x = Exploration(self.t, before=e)
-        x.base = self._baseline(e)
+        x.base, x.base_q, x.base_dq = self._baseline(e)
         x.windows = [self._window(s.window)]
         x.theta0, x.t0, x.n_history = e.mean.copy(), self.t, len(hist)
         self.policy.move(0.0, s.axis, self._pivot(x.windows[0][0].mean(axis=0)))
@@ -211,18 +212,22 @@ class Explorer:
         return d.xanchor[5].copy()
 
     def _baseline(self, e):
-        """The tau_ext level (n,) before the change estimate e answers: the reference RME referred its window to, the
-        first settings.reference samples of the detector's window at the detection (or the tau_ext that the
-        estimate at rest then left unexplained, if those samples are no longer kept)."""
-        rs = self.rme.settings
+        """(tau_ext level (n,), q, dq (T, n)) before the change e answers: the still stretch (every joint slower than RME's
+        rest_speed, at most settings.reference samples, after any earlier accepted detection) that ends with RME's
+        reference (detector.py: it precedes the change); else what e left unexplained, if those are no longer kept."""
+        rs, s, keep = self.rme.settings, self.settings, len(self._q)
         first = [h for h in self.rme.history if h.kind == "detection" and h.accepted and h.t <= e.t]
         k0 = int(round(first[-1].t * rs.rate)) - rs.detector.window if first else -1
-        if first and self._k - k0 <= len(self._q):
-            idx = (k0 + np.arange(rs.reference)) % len(self._q)
-            self._base_q = self._q[idx]
-            return self._tau[idx].mean(axis=0)
-        self._base_q, tau, _ = self._window(self.settings.window)
-        return (tau - self.robot.payload_torque(self._base_q, e.mean)).mean(axis=0)
+        if first and self._k - k0 <= keep:
+            end = k0 + rs.reference                                  # RME's reference: [k0, end)
+            low = max(self._k - keep, int(round(first[-2].t * rs.rate)) if len(first) > 1 else 0, end - s.reference)
+            k = k0
+            while k > low and np.abs(self._dq[(k - 1) % keep]).max() < rs.rest_speed:
+                k -= 1                                               # the still stretch before it
+            idx = np.arange(k, end) % keep
+            return self._tau[idx].mean(axis=0), self._q[idx], self._dq[idx]
+        q, tau, dq = self._window(s.window)
+        return (tau - self.robot.payload_torque(q, e.mean)).mean(axis=0), q, dq
 
     def _window(self, T):
         """The last T samples, oldest first: q, tau_ext, dq (T, n)."""
@@ -259,7 +264,7 @@ class Explorer:
         baseline, each with its own marginalised offset (the load-free level at the tilted pose is not known)."""
         qs, taus, dqs = zip(*x.windows)
         corr = self.rme.correction                # RME subtracts it from the windows: refer to the corrected level
-        base = x.base if corr is None else x.base - corr.correction(self._base_q).mean(axis=0)
+        base = x.base if corr is None else x.base - corr.correction(x.base_q, x.base_dq).mean(axis=0)
         taus = [tau - base for tau in taus]
         rme = self.rme
         if self.settings.offset_std is not None:                     # the same estimator, its offset prior changed
@@ -267,11 +272,9 @@ class Explorer:
             rme.settings = dataclasses.replace(rme.settings, vi=dataclasses.replace(
                 rme.settings.vi, offset_std=self.settings.offset_std))
         e = rme.estimate(list(qs), taus, dq=list(dqs) if rme.correction is not None else None)
-        e.kind, e.t = "exploration", self.t
-        x.after = e
+        x.after, e.kind, e.t = e, "exploration", self.t
         if np.all(np.abs(e.mean[1:]) <= self.rme.settings.max_com) and np.isfinite(e.mean).all():
-            self._theta, self._from = e.mean.copy(), self.rme.theta.copy()
-            e.applied = self.t
+            self._theta, self._from, e.applied = e.mean.copy(), self.rme.theta.copy(), self.t
             self._return(x, "returning")
         else:
             self._return(x, "abandoned: the estimate from both poses is not a payload")
@@ -302,16 +305,13 @@ def storage_check(theta, settings: ExploreSettings = ExploreSettings(), hold=0.3
     robot = plant.robot
     policy = MovingAttractor(Attractor(*robot.ee_pose(Q_READY)))
     ctrl = CPIC(robot, policy)
-    _, T = settings.profile(0.0)
-    dwell = settings.settle + settings.window / 1000.0
+    T, dwell = settings.profile(0.0)[1], settings.settle + settings.window / 1000.0
     seconds = seconds or hold + 2 * T + dwell + 0.3
-    pivot = Explorer._pivot_of(robot, Q_READY, settings.pivot, policy.base.p_star)
-    angles = []
+    pivot, angles = Explorer._pivot_of(robot, Q_READY, settings.pivot, policy.base.p_star), []
 
     def move(k, sample):
         t = k * plant.dt - hold
-        out = settings.profile(t)[0] - settings.profile(t - T - dwell)[0]
-        policy.move(out, settings.axis, pivot)
+        policy.move(settings.profile(t)[0] - settings.profile(t - T - dwell)[0], settings.axis, pivot)
         angles.append(policy.angle)
     rec = run(plant, ctrl, seconds, estimator=ExactCompensation(robot, theta), q0=Q_READY, before_step=move)
     d, M = mujoco.MjData(plant.model), np.zeros((robot.n, robot.n))
