@@ -280,6 +280,7 @@ class CPIC:
         push is resisted at the limit (without it a push d [rad/s^2] can overshoot a limit by about d / k1).
         """
         G, dq, comp, f, V, F_c, tau_free, terms, why = self._terms(q, dq, compensation, tau_ext)
+        self.G = G                                    # G(q) (n,) at this step's q: the caller need not recompute it
         if why:
             return self._fallback(G, dq, comp, f, V, F_c, f"fallback: {why}")
         if not self._active and self._satisfies(tau_free, comp, *terms[4:]):   # QP optimum = unconstrained one
@@ -291,8 +292,7 @@ class CPIC:
         if status != "optimal" or not math.isfinite(tau_qp @ tau_qp):
             self._active = []
             return self._fallback(G, dq, comp, f, V, F_c, f"fallback: QP {status}")
-        self._active = active
-        tau = np.minimum(np.maximum(tau_qp + comp, self._tau_min), self.tau_max)
+        self._active, tau = active, np.minimum(np.maximum(tau_qp + comp, self._tau_min), self.tau_max)
         return tau, StepInfo(status, it, np.array(active, dtype=int), False, f, V, F_c, tau_qp)
 
     def qp(self, q, dq, compensation=None, tau_ext=None):

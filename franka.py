@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -52,14 +53,19 @@ class Safety:
         n = self.tau_max.size
         if tau.shape != (n,) or G.shape != (n,):
             raise ValueError(f"tau, G: expected shapes ({n},), found {tau.shape}, {G.shape}")
-        if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(G))):
-            self.held += 1
-            return self.last.copy()
-        r = self.config.max_step
-        cmd = np.clip(tau - G, self.last - r, self.last + r)
-        cmd = np.clip(cmd, -self.tau_max - G, self.tau_max - G)
+        return self._command(tau, G).copy()
+
+    def _command(self, tau, G) -> np.ndarray:
+        """command() for float arrays tau, G (n,) the caller vouches for (run_loop); returns self.last itself."""
+        if not math.isfinite(tau.sum() + G.sum()) and not (np.isfinite(tau).all() and np.isfinite(G).all()):
+            self.held += 1                             # (a finite sum: all finite; inf or NaN: look closer)
+            return self.last
+        r, last = self.config.max_step, self.last
+        cmd = np.subtract(tau, G)
+        np.clip(cmd, last - r, last + r, out=cmd)
+        np.clip(cmd, -self.tau_max - G, self.tau_max - G, out=cmd)
         self.last = cmd
-        return cmd.copy()
+        return cmd
 
     def ramp_down(self) -> np.ndarray:
         """The next command on the way to zero at the rate limit (gravity-free: the robot keeps holding G)."""
@@ -88,10 +94,12 @@ def make_controller(robot: Robot, q0, task: str = "hold", stiffness_scale: float
 def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float = 5.0, dry_run: bool = False,
              print_every: float = 0.5, out=None) -> tuple[dict, dict]:
     """Each cycle: state = backend.read(); tau_ext = -tau_ext_hat_filtered (paper sign); comp = estimator.update;
-    tau, _ = controller.step(q, dq, comp, tau_ext); cmd = safety.command(tau, G(q)); backend.write(cmd). A dry run
-    writes zeros (the robot backends then command nothing) and prints what it would command every print_every s.
-    Ends after `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate limit and
-    backend.stop(); an exception is raised again after that. Returns (summary, log arrays)."""
+    tau, _ = controller.step(q, dq, comp, tau_ext); cmd = safety.command(tau, G(q)); backend.write(cmd); then, while
+    the robot has yet to send the next state: the log, the estimate's poll and any garbage collection (callback_s is
+    the time from the state to its command). G comes from the controller's own step when it is a CPIC on `robot`.
+    A dry run writes zeros (the robot backends then command nothing) and prints what it would command every
+    print_every s. Ends after `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate
+    limit and backend.stop(); an exception is raised again after that. Returns (summary, log arrays)."""
     if not (np.isfinite(seconds) and seconds > 0):
         raise ValueError(f"seconds: expected a finite duration > 0 s, found {seconds!r}")
     n, steps = robot.n, int(round(seconds * 1000))
@@ -100,34 +108,37 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     rec["t"], rec["theta_hat"], rec["callback_s"] = np.full(steps, np.nan), np.full((steps, 4), np.nan), np.zeros(steps)
     rec["in_flight"] = np.zeros(steps, dtype=bool)     # an estimate was running beside the loop at the cycle's end
     busy = getattr(getattr(estimator, "executor", None), "busy", lambda: False)
+    shares_G = isinstance(controller, CPIC) and controller.robot is robot
+    no_theta, zeros = np.zeros(4), np.zeros(n)
     k, t, missed, stopped, last_print = 0, 0.0, 0, "end", -np.inf
+    collect = gc.isenabled()
     gc.collect()
     gc.freeze()                  # what exists now is never scanned again: a collection in the loop stays short
+    gc.disable()                 # and it runs after the write (_collect_garbage), off the state-to-command path
     try:
         for k in range(steps):
             s = backend.read()
             t0 = time.perf_counter()
-            t += s.duration_s if k else 0.0
-            missed += max(int(round(s.duration_s * 1000)) - 1, 0) if k else 0
             tau_ext = paper_tau_ext(s.tau_ext_hat_filtered)
             comp = estimator.update(s.q, s.dq, tau_ext) if estimator is not None else None
             tau, _ = controller.step(s.q, s.dq, comp, tau_ext)
-            G = robot.gravity(s.q)
-            cmd = safety.command(tau, G)
+            G = controller.G if shares_G else robot.gravity(s.q)
+            cmd = safety._command(tau, G)              # (n,) float arrays: checks are for callers outside the loop
             rec["callback_s"][k] = time.perf_counter() - t0
+            backend.write(zeros if dry_run else cmd)
+            t += s.duration_s if k else 0.0
+            missed += max(int(round(s.duration_s * 1000)) - 1, 0) if k else 0
             for key, v in (("q", s.q), ("dq", s.dq), ("tau_J", s.tau_J), ("tau_ext", tau_ext), ("tau", tau),
                            ("tau_cmd", cmd)):
                 rec[key][k] = v
             rec["t"][k], rec["in_flight"][k] = t, busy()
-            rec["theta_hat"][k] = getattr(estimator, "theta", np.zeros(4))
-            if dry_run:
-                if t - last_print >= print_every:
-                    print(f"t {t:7.3f} s  would command (gravity-free) {np.array2string(cmd, precision=2)} Nm",
-                          file=out or sys.stdout)
-                    last_print = t
-                backend.write(np.zeros(n))
-            else:
-                backend.write(cmd)
+            rec["theta_hat"][k] = getattr(estimator, "theta", no_theta)
+            if dry_run and t - last_print >= print_every:
+                print(f"t {t:7.3f} s  would command (gravity-free) {np.array2string(cmd, precision=2)} Nm",
+                      file=out or sys.stdout)
+                last_print = t
+            if collect:
+                _collect_garbage()
         k = steps
     except KeyboardInterrupt:
         stopped = "interrupted (Ctrl-C)"
@@ -136,10 +147,20 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
         _stop(backend, safety, dry_run)
         raise
     finally:
+        if collect:
+            gc.enable()
         gc.unfreeze()
     _stop(backend, safety, dry_run)
     log = {key: v[:k] for key, v in rec.items()}
     return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds), log
+
+
+def _collect_garbage():
+    """What the collector would do at this point, by its own thresholds: the youngest generation whose count is
+    over its threshold, and the ones below it (the loop calls this after its write; automatic collection is off)."""
+    counts, limits = gc.get_count(), gc.get_threshold()
+    if counts[0] > limits[0]:
+        gc.collect(2 if counts[2] > limits[2] and counts[1] > limits[1] else 1 if counts[1] > limits[1] else 0)
 
 
 def _stop(backend, safety: Safety, dry_run: bool, max_cycles: int = 100):

@@ -56,6 +56,15 @@ def test_sim_hold_torques_within_limits_and_rate_and_finite(hold_run):
     assert np.abs(steps).max() > 0.5                              # the limiter had something to do (load applied)
 
 
+def test_loop_commands_exactly_what_the_checked_safety_gives_for_the_models_gravity(hold_run):
+    """The loop takes G from the controller's step and the unchecked Safety path: replaying the logged tau through
+    the public Safety.command with G = Robot.gravity(q) recomputed here gives every command bit for bit."""
+    _, log, _, _ = hold_run
+    safety = franka.Safety(LIMIT)
+    replay = np.array([safety.command(tau, ROBOT.gravity(q)) for tau, q in zip(log["tau"], log["q"])])
+    assert np.array_equal(replay, log["tau_cmd"]) and safety.held == 0
+
+
 def test_sim_tau_ext_is_paper_sign_minus_the_load_torque(hold_run):
     """Paper sign (Eq. 1): tau_ext = model - tau_J, so a load the model lacks reads, at rest, as the torque its weight
     applies, +payload_torque (dynamics.py); libfranka's tau_ext_hat_filtered reads it negated."""
@@ -189,22 +198,28 @@ def _windows(robot, rng, thetas):
 
 def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
     """The worker rebuilds the estimator from the spec (MJCF, weights, settings, seed): the same sequence of windows
-    gives exactly the estimates (mean, covariance, prior, Y) of the estimator the spec builds in this process."""
+    gives exactly the estimates (mean, covariance, prior, Y) of the estimator the spec builds in this process, whether
+    a job travels through the shared memory (none out before it), pickled (queued behind another) or is a list of
+    windows (combined evidence, pickled)."""
     from robot.worker import EstimatorSpec, ProcessWorker
     spec = EstimatorSpec(seed=11)
     windows = _windows(ROBOT, np.random.default_rng(5), [(1.0, 0.0, 0.0, 0.05), (0.5, 0.02, -0.01, 0.1),
-                                                         (1.5, -0.03, 0.02, 0.02)])
+                                                         (1.5, -0.03, 0.02, 0.02), (0.8, 0.01, 0.0, 0.08)])
+    combined = ([windows[1][0], windows[3][0]], [windows[1][1], windows[3][1]])
     here = spec.build()
-    ref = [here._estimate(q, tau) for q, tau in windows]
+    ref = [here._estimate(q, tau) for q, tau in windows[:3]] + [here._estimate(*combined), here._estimate(*windows[3])]
     with ProcessWorker(spec) as worker:
         there = spec.build(executor=worker)
-        jobs = [worker.submit(there._estimate, q, tau) for q, tau in windows]    # queued: answered in order
+        jobs = [worker.submit(there._estimate, q, tau) for q, tau in windows[:3]]    # queued: answered in order
         got = [job.result() for job in jobs]
+        got += [worker.submit(there._estimate, *combined).result(), worker.submit(there._estimate, *windows[3]).result()]
         assert not worker.busy() and worker.pid != os.getpid()
     for (e_ref, Y_ref), (e, Y) in zip(ref, got):
-        for key in ("mean", "cov", "std", "prior"):
+        for key in ("mean", "cov", "std", "prior", "observed"):
             assert np.array_equal(getattr(e, key), getattr(e_ref, key)), key
-        assert e.iterations == e_ref.iterations and np.array_equal(Y, Y_ref)
+        assert e.iterations == e_ref.iterations and e.converged == e_ref.converged
+        assert all(np.array_equal(a, b) for a, b in zip(Y if isinstance(Y, list) else [Y], Y_ref if isinstance(
+            Y_ref, list) else [Y_ref])) and type(Y) is type(Y_ref)
     assert abs(got[0][0].mean[0] - 1.0) < 0.1                    # and it is an estimate of the payload
 
 
