@@ -3,6 +3,7 @@ then stabilisation, with a vertical external force. Ring buffers of running sums
 so each 1 kHz update costs the same whatever the window length."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -274,10 +275,9 @@ class Levels:
             self.rejected = None
         return back
 
-    def judge(self, q, level, regressor, mass, gates, far):
-        """What a steady residual `level` (n,) at pose q means (regressor() -> (n, 4): the payload regressor there,
-        called only if a payload must be tested; mass: the one
-        compensated now, gates: (first, later) explained shares for payload_like): None when it needs nothing
+    def judge(self, q, level, is_payload, gates, far):
+        """What a steady residual `level` (n,) at pose q means (is_payload(d, gate) -> bool: payload_like for a change d
+        there, called only if a payload must be tested; gates: (first, later) explained shares): None when it needs nothing
         (explained here: the level is followed; judged before; no payload), "new" at a pose never seen (taken as
         explained) unless the level is more than `far` [Nm] from the nearest level known (no sensor bias reaches
         that: a change missed while a push moved the arm), else (reference, kind) to estimate against: kind "first"
@@ -296,7 +296,7 @@ class Levels:
             self.explained.put(q, level)                               # explained: follow the slow bias drift
             return None
         reference = np.zeros(len(level)) if first else trusted
-        if not payload_like(regressor(), level - reference, mass, gates[0] if first else gates[1]):
+        if not is_payload(level - reference, gates[0] if first else gates[1]):
             (self.explained if first else self.muted).put(q, level)    # the bias; or e.g. a person holding the arm
             return None
         return reference, kind
@@ -313,13 +313,39 @@ class Levels:
         return trusted
 
 
-def payload_like(Y, d, mass, gate) -> bool:
+def steady_prefix(R, first, last, band=0.25, span=10) -> int:
+    """How many leading samples of R (T, n) share the level of the first `first` (at least `first`, at most `last`):
+    up to `span` samples before the first run of `span` samples whose mean leaves that level by more than `band` [Nm].
+    The longer the reference a change is referred to, the less its noise (0.1-0.15 Nm per sample on a Panda's J2-J4:
+    30 samples leave 0.02-0.03 Nm, 5-10 g of a payload's mass)."""
+    ref = R[:first].mean(axis=0)
+    c = np.cumsum(np.vstack([np.zeros(R.shape[1]), R]), axis=0)
+    off = np.linalg.norm((c[span:] - c[:-span]) / span - ref, axis=1) > band     # the run starting at each sample
+    off[:first] = False
+    k = int(np.argmax(off)) if off.any() else len(off)
+    return int(min(max(k - span, first), last))
+
+
+PAYLOAD_SIDE = (0.5, 0.12)   # (N, share): a payload's force is gravity's, vertical; the horizontal part of a change's
+                             #   wrench may reach 0.5 N + 12 % of the force (the loaded arm's sag and the links'
+                             #   model errors leave up to 8 % on the realistic plant; a push leaves its own direction)
+
+
+def payload_like(Y, d, mass, gate, J=None, max_total=np.inf, side=PAYLOAD_SIDE) -> bool:
     """Whether a torque change d (n,) at a pose with payload regressor Y (n, 4) looks like a payload change: least
-    squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) >= -max(0.05 kg,
-    15 % of `mass`) (a removal may read a little heavier than the estimate it undoes)."""
+    squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) in [-max(0.05 kg,
+    15 % of `mass`), max_total] (a removal may read a little heavier than the estimate it undoes; with nothing
+    compensated, a change to a mass <= 0 leaves nothing to estimate); with the world
+    Jacobian J (6, n), the wrench W that J^T W = d asks for also has a nearly vertical force (side: (floor [N],
+    share), |F_xy| <= floor + share |F|), since gravity pulls straight down whatever the CoM."""
     dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
     explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
-    return bool(explained >= gate and mass + dphi[0] >= -max(0.05, 0.15 * mass))
+    if not (explained >= gate and (-max(0.05, 0.15 * mass) if mass > 0 else 0.0) < mass + dphi[0] <= max_total):
+        return False
+    if J is None:
+        return True
+    F = np.linalg.lstsq(J.T, d, rcond=None)[0][:3]
+    return bool(math.hypot(F[0], F[1]) <= side[0] + side[1] * math.sqrt(F @ F))
 
 
 def safe_theta(new, old, max_mass):

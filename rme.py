@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import vi
-from detector import Detector, DetectorSettings, LevelMap, Levels, payload_like, pseudo_force, safe_theta
+from detector import Detector, DetectorSettings, LevelMap, Levels, payload_like, pseudo_force, safe_theta, steady_prefix
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 
@@ -20,9 +20,9 @@ from nn_numpy import WEIGHTS, MismatchNet
 @dataclass(frozen=True)
 class RMESettings:
     window: int = 200              # samples of the estimation window: 200 ms at 1 kHz (Sec. 4, App. E)
-    reference: int = 30            # samples at the start of the detector's buffer whose mean tau_ext is the
-                                   #   reference the window is referred to (ours: removes the pose-dependent bias);
-                                   #   the detector checks that samples 1-30 precede the change (detector.py)
+    reference: int = 30            # samples at the start of the detector's buffer (which checks they precede the
+                                   #   change) whose mean tau_ext the window is referred to, extended while the level
+                                   #   holds (detector.steady_prefix) (ours: removes the pose-dependent bias)
     rate: float = 1000.0           # Hz, the control loop (Franka's 1 kHz)
     use_network: bool = True       # prior mean from the network (False: zero prior mean, Table 1's ablation)
     asynchronous: bool = True      # ours: compensation starts once the estimate's own wall time has passed, as if
@@ -109,7 +109,7 @@ class RME:
         self.settings, self.correction, self.executor = settings, correction, executor
         self._job, self._queued = None, None           # (future, request, sample) in flight; a request waiting
         self.rng = np.random.default_rng(0) if rng is None else rng
-        self.net = self._load_network(weights) if settings.use_network else None
+        self.net = MismatchNet.load(weights) if settings.use_network and weights is not None else None  # or ValueError
         if not isinstance(settings, RMESettings):
             raise ValueError(f"settings: expected an RMESettings, found {type(settings).__name__}")
         self.detector = Detector(settings.detector, n=self.robot.n)
@@ -131,11 +131,11 @@ class RME:
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
-    @staticmethod
-    def _load_network(weights):
-        """The network prior; weights=None runs without it (zero prior mean). A file that cannot be used is a
-        ValueError naming the file and the array (MismatchNet.load), never silently replaced."""
-        return None if weights is None else MismatchNet.load(weights)
+    def _payload_like(self, q, d, gate) -> bool:
+        """detector.payload_like for a residual change d (n,) at pose q, from the payload compensated now."""
+        _, R, J = self.robot.kinematics(q)
+        return payload_like(self.robot.payload_regressor_from(J, R), d, self.theta[0], gate, J,
+                            1.2 * self.settings.max_mass)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -275,10 +275,10 @@ class RME:
         if self._lv.undone(Q[-1], Rs[-s.window:].mean(axis=0)):
             return                         # back to the level before a change that was no payload: its release
         pending = self._refine                   # within refine_within of an accepted change: refer to before it
-        bias = pending["bias"] if pending is not None else self._lv.bias(Rs[:s.reference], q_ref)
+        steady = Rs[:steady_prefix(Rs, s.reference, len(Rs) - s.window)]      # the level before, as long as it holds
+        bias = pending["bias"] if pending is not None else self._lv.bias(steady, q_ref)
         before = self.theta.copy()
-        if not payload_like(self.robot.payload_regressor(Q[-1]), Rs[-s.window:].mean(axis=0) - bias, before[0],
-                            s.min_explained):      # a push, a bias step: no point mass under gravity explains it
+        if not self._payload_like(Q[-1], Rs[-s.window:].mean(axis=0) - bias, s.min_explained):   # a push, a bias step
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
             return
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
@@ -310,7 +310,7 @@ class RME:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        verdict = self._lv.judge(q, level, lambda: self.robot.payload_regressor(self._q[last[-1]]), self._phi[0],
+        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(self._q[last[-1]], d, gate),
                                  (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
@@ -324,9 +324,9 @@ class RME:
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first:                                # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= first_gate
-        else:                                    # the new estimate must make the level consistent again (far from
-            gap = np.linalg.norm(level - reference)          # any pose seen: explain 3/4 of the gap, bias aside)
-            tol = 0.25 * gap if kind == "far" else min(s.monitor_threshold, 0.5 * gap)
+        else:                                    # the new estimate must make the level consistent again: within
+            gap = np.linalg.norm(level - reference)  # 6 % of a large gap (a heavy load's sag moves the bias); far from
+            tol = 0.25 * gap if kind == "far" else min(max(s.monitor_threshold, 0.06 * gap), 0.5 * gap)   # any pose: 3/4
             accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(safe_theta(
                 e.mean, self.theta, s.max_mass))).mean(axis=0)) <= tol
         def then(e):

@@ -178,3 +178,56 @@ def test_invalid_settings_raise_value_error(kwargs, name):
 def test_bad_input_raises_value_error_naming_argument(args, name):
     with pytest.raises(ValueError, match="^" + re.escape(name) + ":"):
         Detector().update(**args)
+
+
+def test_payload_like_asks_for_a_vertical_force():
+    """Torque changes built with MuJoCo's own site Jacobian (independent of the project's kinematics): a point mass
+    anywhere within 0.15 m is a payload; its weight tilted 20 deg from vertical, pushing at the flange, is not,
+    although its torque change is still explained to > 90 % by the payload regressor at some poses."""
+    import mujoco
+
+    from detector import payload_like
+    from dynamics import Robot
+    from nn_train import DataConfig, random_pose
+    robot, rng = Robot.panda(), np.random.default_rng(11)
+    model, data = robot.model, mujoco.MjData(robot.model)
+    tilted_explained = []
+    for _ in range(12):
+        q = random_pose(robot, rng, DataConfig())
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        Jp, Jr = np.zeros((3, 7)), np.zeros((3, 7))
+        mujoco.mj_jacSite(model, data, Jp, Jr, robot.site)
+        J, R = np.vstack([Jp, Jr]), data.site_xmat[robot.site].reshape(3, 3)
+        Y = robot.payload_regressor(q)
+        m, r = rng.uniform(0.2, 3.0), rng.uniform(-0.15, 0.15, 3)
+        F = np.array([0.0, 0.0, -9.81 * m])
+        load = J.T @ np.concatenate([F, np.cross(R @ r, F)])            # the weight of m at the CoM r (ee frame)
+        assert payload_like(Y, load, 0.0, 0.9, J, max_total=3.6)
+        assert not payload_like(Y, load, 0.0, 0.9, J, max_total=0.8 * m)   # heavier than the arm may carry
+        a, phi = np.deg2rad(20.0), rng.uniform(0, 2 * np.pi)
+        tilt = np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), -np.cos(a)])
+        push = J.T @ np.concatenate([9.81 * m * tilt, np.zeros(3)])        # the ee site is the flange (panda.xml)
+        assert not payload_like(Y, push, 0.0, 0.0, J)
+        dphi = np.linalg.lstsq(Y, push, rcond=None)[0]
+        tilted_explained.append(1 - np.sum((push - Y @ dphi) ** 2) / np.sum(push ** 2))
+    assert max(tilted_explained) > 0.9        # the torque share alone would have let some of them through
+
+
+def test_steady_prefix_matches_a_brute_force_scan():
+    """detector.steady_prefix against a plain loop over every run of `span` samples; a level step at a random sample
+    ends the prefix `span` samples before the first run that reaches it; bounds hold."""
+    from detector import steady_prefix
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        T, first, span, band = 500, 30, 10, 0.25
+        R = 0.05 * rng.standard_normal((T, 7))
+        step = int(rng.integers(40, 450))
+        R[step:] += rng.normal(size=7) * rng.uniform(0.0, 0.5)
+        ref = R[:first].mean(axis=0)
+        runs = [i for i in range(first, T - span + 1) if np.linalg.norm(R[i:i + span].mean(axis=0) - ref) > band]
+        want = min(max((runs[0] if runs else T - span + 1) - span, first), 300)
+        assert steady_prefix(R, first, 300, band, span) == want
+        if runs:
+            assert runs[0] > step - span        # never ends before the step could be seen

@@ -175,13 +175,15 @@ def test_cli_refuses_without_package_and_checks_arguments(monkeypatch, capsys):
 def test_cli_runs_the_estimates_beside_the_loop_and_restores_the_switch_interval(capsys, worker):
     """RME's estimates run in a worker (the loop only polls them); --sync-estimate runs them in the loop."""
     switch = sys.getswitchinterval()
-    assert franka.main(["--sim", "--seconds", "2.5", "--sim-payload", "1.0", "--json", "--worker", worker]) == 0
+    # paced at 1 kHz of wall time, as on a robot: the loop waits for each state, so the worker (at the lowest
+    # scheduling priority) finds idle CPU even on a busy machine; unpaced, the loop takes the whole core
+    assert franka.main(["--sim", "--paced", "--seconds", "2.0", "--sim-payload", "1.0", "--json", "--worker",
+                        worker]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["estimate_in"] == worker and sys.getswitchinterval() == switch
     applied = [e for e in summary["estimates"] if e["accepted"]]
-    # asked, then applied: the unpaced sim runs faster than real time, so the samples a worker's estimate takes
-    # depend on the machine's load (measured 1-100+); what holds is the order and that it lands within the run
-    assert applied and 1.25 < applied[0]["t"] <= applied[0]["applied"] < 2.5
+    # asked, then applied within the run (the samples a worker's estimate takes depend on the machine's load)
+    assert applied and 1.0 < applied[0]["t"] <= applied[0]["applied"] < 2.0
     assert abs(summary["theta_hat"][0] - 1.0) < 0.1 and summary["missed_cycles"] == 0
     flight = summary["callback_ms_estimate_in_flight"]          # may hold no cycle: a job can end within one
     assert set(flight) == {"median", "p99", "max", "cycles"} and flight["cycles"] <= summary["cycles"]

@@ -59,6 +59,27 @@ def test_release_of_an_upward_push_is_not_applied(force):
     assert not est.history, [(e.t, e.kind, e.reason) for e in est.history]
 
 
+def test_a_push_tilted_from_vertical_is_not_a_payload():
+    """Gravity pulls straight down: a push 15-25 deg off vertical, held 1.5 s at the flange, is not estimated, even
+    where its torques are explained to 97 % by a point mass (reliability push-only episode 28, seed 0: a push
+    (1.8, 3.9, -10.9) N was applied as 0.92 kg when only that share was tested)."""
+    from experiments.reliability import run_episode
+    _, est = hold(5, 4.0, [Push(1.0, (-2.5, 3.0, -20.0), 1.5, body="link7", offset=(0.0, 0.0, 0.107))])
+    assert not est.history and est.changes_not_payload == 1, [(e.t, e.kind, e.mean.round(2)) for e in est.history]
+    episode = run_episode(50_028, ReliabilityConfig(), loads=False)
+    assert episode["applied"] == 0 and episode["detections"] == 0, episode
+
+
+def test_a_heavy_load_missed_during_pushes_is_healed_although_its_sag_moved_the_bias():
+    """Reliability episode 42 (seed 0): 2.6 kg attached, two pushes before the arm settles, so the detector never
+    fires; at rest the monitor's estimate leaves 0.41 Nm of a 9.4 Nm gap (the load's sag moved the arm within the
+    same pose tolerance, and the sensor bias with it). That is consistent; refusing it kept the load uncompensated."""
+    from experiments.reliability import run_episode
+    episode = run_episode(42, ReliabilityConfig())
+    last = episode["changes"][-1]
+    assert last["m"] > 2.5 and last["compensated"], last
+
+
 def test_a_change_the_detector_misses_is_healed_once_the_arm_rests():
     blind = RMESettings(asynchronous=False, detector=DetectorSettings(activation_threshold=1e6))   # never fires
     rec, est = hold(7, 4.0, [PayloadChange(1.0, 0.9, (0.05, -0.03, 0.13))], settings=blind)

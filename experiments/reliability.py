@@ -98,10 +98,13 @@ def score(rec, ep, cfg: ReliabilityConfig, robot) -> dict:
         calm = (rec.t >= t_next - 1.0) & (rec.t < t_next)
         settled = bool(t_next - max([t] + busy) >= 1.0 and np.abs(rec.dq[calm]).max() < cfg.rest_speed)
         m_hat = rec.theta_hat[rec.at(t_next) - 1, 0]
-        ok = abs(m_hat - m) <= max(cfg.mass_tolerance[0] * m, cfg.mass_tolerance[1])
+        tol = max(cfg.mass_tolerance[0] * m, cfg.mass_tolerance[1])
+        ok = abs(m_hat - m) <= tol
+        right = np.flatnonzero((rec.t >= t) & (rec.t < t_next) & (np.abs(rec.theta_hat[:, 0] - m) <= tol))
         changes.append(dict(t=t, m=m, before=before, kind="removal" if m == 0 else "attachment",
                             detected=bool(hits), settled=settled, compensated=bool(ok),
                             m_hat=float(m_hat), latency_ms=(1e3 * (applied[0].applied - t) if applied else None),
+                            right_ms=(1e3 * (rec.t[right[0]] - t) if len(right) else None),
                             pushed=any(abs(p[0] - t) < 0.5 or p[0] <= t <= p[0] + p[2] for p in ep["pushes"])))
     err_mm = 1e3 * rec.ee_error
     lo, hi = robot.model.jnt_range.T
@@ -120,9 +123,9 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
         sel = [c for c in counted if c["kind"] == kind]
         return {"count": len(sel), key: sum(c[key] for c in sel), "share": (sum(c[key] for c in sel) / len(sel)
                                                                              if sel else None)}
-    lat = [c["latency_ms"] for c in ch if c["latency_ms"] is not None and c["kind"] == "attachment"]
-    quiet = [c["latency_ms"] for c in ch if c["latency_ms"] is not None and c["kind"] == "attachment"
-             and not c["pushed"]]
+    pick = lambda key, push_ok=True: [c[key] for c in ch if c[key] is not None and c["kind"] == "attachment"
+                                      and (push_ok or not c["pushed"])]
+    lat, quiet, right, right_quiet = pick("latency_ms"), pick("latency_ms", False), pick("right_ms"), pick("right_ms", False)
     errs = np.array([e["final_error_mm"] for e in load_eps])
     return {
         "attachments_detected": share("attachment", "detected"),
@@ -134,6 +137,8 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
         "latency_ms_median": float(np.median(lat)) if lat else None,
         "latency_ms_p90": float(np.percentile(lat, 90)) if lat else None,
         "latency_ms_median_no_push": float(np.median(quiet)) if quiet else None,
+        "right_ms_median": float(np.median(right)) if right else None,
+        "right_ms_median_no_push": float(np.median(right_quiet)) if right_quiet else None,
         "final_error_mm_median": float(np.median(errs)) if len(errs) else None,
         "final_error_below_target": int(np.sum(errs < cfg.error_mm)), "load_episodes": len(load_eps),
         "push_episodes": len(push_eps),
@@ -183,6 +188,8 @@ def main(args):
     ms = lambda v: "-" if v is None else f"{v:.0f} ms"
     print(f"  load change -> compensation (attachments)  median {ms(s['latency_ms_median'])}, p90 "
           f"{ms(s['latency_ms_p90'])}; without a push within 0.5 s: median {ms(s['latency_ms_median_no_push'])}")
+    print(f"  load change -> mass compensated within 10 % or 50 g (attachments)  median {ms(s['right_ms_median'])}; "
+          f"without a push within 0.5 s: median {ms(s['right_ms_median_no_push'])}")
     print(f"  final ee error: median {s['final_error_mm_median']:.1f} mm; below 10 mm in "
           f"{s['final_error_below_target']}/{s['load_episodes']} episodes")
     print(f"  pushes only: estimated in {s['push_episodes_detected']}/{s['push_episodes']} episodes, applied in "
