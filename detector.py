@@ -318,11 +318,12 @@ def steady_prefix(R, first, last, band=0.25, span=10) -> int:
     up to `span` samples before the first run of `span` samples whose mean leaves that level by more than `band` [Nm].
     The longer the reference a change is referred to, the less its noise (0.1-0.15 Nm per sample on a Panda's J2-J4:
     30 samples leave 0.02-0.03 Nm, 5-10 g of a payload's mass)."""
-    ref = R[:first].mean(axis=0)
-    c = np.cumsum(np.vstack([np.zeros(R.shape[1]), R]), axis=0)
-    off = np.linalg.norm((c[span:] - c[:-span]) / span - ref, axis=1) > band     # the run starting at each sample
-    off[:first] = False
-    k = int(np.argmax(off)) if off.any() else len(off)
+    c = R.cumsum(axis=0)
+    runs = c[span - 1:].copy()                                   # sums of the runs starting at each sample
+    runs[1:] -= c[:-span]
+    runs -= span * c[first - 1] / first                          # less the level of the first samples
+    off = np.einsum("ij,ij->i", runs, runs)[first:] > (span * band) ** 2
+    k = first + int(off.argmax()) if off.any() else len(runs)
     return int(min(max(k - span, first), last))
 
 
@@ -338,14 +339,23 @@ def payload_like(Y, d, mass, gate, J=None, max_total=np.inf, side=PAYLOAD_SIDE) 
     compensated, a change to a mass <= 0 leaves nothing to estimate); with the world
     Jacobian J (6, n), the wrench W that J^T W = d asks for also has a nearly vertical force (side: (floor [N],
     share), |F_xy| <= floor + share |F|), since gravity pulls straight down whatever the CoM."""
-    dphi = np.linalg.lstsq(Y, d, rcond=None)[0]
-    explained = 1.0 - np.sum((d - Y @ dphi) ** 2) / max(float(d @ d), 1e-12)
+    dphi = _least_squares(Y, d)
+    e = d - Y @ dphi
+    explained = 1.0 - (e @ e) / max(float(d @ d), 1e-12)
     if not (explained >= gate and (-max(0.05, 0.15 * mass) if mass > 0 else 0.0) < mass + dphi[0] <= max_total):
         return False
     if J is None:
         return True
-    F = np.linalg.lstsq(J.T, d, rcond=None)[0][:3]
+    F = _least_squares(J.T, d)[:3]
     return bool(math.hypot(F[0], F[1]) <= side[0] + side[1] * math.sqrt(F @ F))
+
+
+def _least_squares(A, d):
+    """x minimising |A x - d| for a tall A (m, k) through its normal equations with a ridge of 1e-10 of their trace
+    (A's rank may fall short: a payload's rz at a static pose; the fit A x is what counts there)."""
+    N = A.T @ A
+    N.flat[::N.shape[0] + 1] += 1e-10 * N.trace() + 1e-300
+    return np.linalg.solve(N, A.T @ d)
 
 
 def safe_theta(new, old, max_mass):

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import vi
-from detector import Detector, DetectorSettings, LevelMap, Levels, payload_like, pseudo_force, safe_theta, steady_prefix
+from detector import Detector, DetectorSettings, LevelMap, Levels, payload_like, safe_theta, steady_prefix
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 
@@ -252,7 +252,7 @@ class RME:
         theta = safe_theta(e.mean, self.theta, self.settings.max_mass)
         d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
         self.theta, self._phi = theta, vi.phi_of(theta)
-        self.detector.shift(d, pseudo_force(J, d, self.settings.detector.lam, check=False))
+        self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
         self._r -= d                                                   # the arm is near this pose over the buffer
         e.applied = self._k / self.settings.rate
         self._pending, self._still, self._calm = None, 0, 0   # the arm answers the new compensation: wait for rest
