@@ -242,6 +242,17 @@ def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
             worker.submit(print, 1)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc and Linux scheduling policies")
+def test_the_worker_process_runs_one_thread_below_the_loop():
+    """Every thread of the worker yields to the loop: one thread (no BLAS helper threads, which would keep the normal
+    priority and spin beside the loop after each product), scheduled SCHED_IDLE, read back from the kernel."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    with ProcessWorker(EstimatorSpec(weights=None)) as worker:
+        threads = os.listdir(f"/proc/{worker.pid}/task")
+        policies = {os.sched_getscheduler(int(t)) for t in threads}
+    assert len(threads) == 1 and policies == {os.SCHED_IDLE}, (threads, policies)
+
+
 def _free_port_closed(host="127.0.0.1"):
     with socket.socket() as s:
         s.bind((host, 0))

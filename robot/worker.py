@@ -117,7 +117,10 @@ class ProcessWorker:
         self._boxes = _Boxes()
         code = (f"import sys; sys.path.insert(0, {ROOT!r}); from robot.worker import _serve; "
                 f"_serve({theirs.fileno()}, {self._boxes.fd})")
-        self._proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(), self._boxes.fd))
+        one = {k: "1" for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}   # no BLAS threads: they
+        # would keep the normal priority (SCHED_IDLE is set per thread) and spin beside the loop after each product
+        self._proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(), self._boxes.fd),
+                                      env={**os.environ, **one})
         theirs.close()
         self._conn = Connection(ours.detach())
         self._arrived = _poller(self._conn)
