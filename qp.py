@@ -173,7 +173,12 @@ def _unit(VT, u, b, active, max_iterations, tol, warm=True):
     uu = blas.ddot(u, u)                              # |x|_H^2: finite iff u is (but for overflow)
     if not m or not uu < math.inf:
         return -u, ("optimal" if uu < math.inf else "degenerate"), 0, [], np.zeros(m)
-    if warm and active and len(active) <= n:          # the warm start is often the answer
+    if warm and not active:                           # the unconstrained minimiser is often the answer (half the
+        y = -u                                        # controller's problems): one product tells
+        s = blas.dgemv(1.0, VT, y, -1.0, b, 0, 1, 0, 1, 1, 0)    # (m,) slacks V y - b
+        if s.item(s.argmin()) >= 0.0:
+            return y, "optimal", 0, [], np.zeros(m)
+    elif warm and len(active) <= n:                   # the warm start is often the answer
         W, y, V = list(dict.fromkeys(active)), -u, VT.T     # V (m, n): rows v_i
         VW = V.take(W, axis=0)
         out = _warm_answer(V, b, VW, VW, y, V @ y - b, W)
