@@ -3,9 +3,7 @@ tau_ext sign, the backends' refusal to start without their package or robot, and
 against the franky-sim FCI server on 127.0.0.1."""
 import json
 import os
-import signal
 import socket
-import subprocess
 import sys
 import time
 
@@ -310,25 +308,6 @@ def test_dry_run_prints_and_commands_nothing(capsys):
 
 
 # --- pylibfranka against franky-sim (skipped unless both are installed) -------------------------------------------
-class _LoadAt:
-    """A backend that asks the franky-sim server (SIGUSR1, robot/franky_load.py) to add its load at cycle `at`."""
-
-    def __init__(self, inner, server, at):
-        self.inner, self.server, self.at, self.k, self.initial = inner, server, at, 0, inner.initial
-
-    def read(self):
-        self.k += 1
-        if self.k == self.at:
-            os.kill(self.server.pid, signal.SIGUSR1)              # the server's own process, by its pid
-        return self.inner.read()
-
-    def write(self, cmd):
-        self.inner.write(cmd)
-
-    def stop(self):
-        self.inner.stop()
-
-
 def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_hand():
     """franky-sim (frictionless joints, see robot/franky_load.py) on 127.0.0.1; pylibfranka's loop with CPIC and RME
     (estimates in a worker process); 1 kg at 5 cm along the hand's z axis added to the simulated hand's physics at
@@ -336,34 +315,9 @@ def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_h
     detected after it was added, its mass within 0.1 kg at rest, torques within limits and rate."""
     pytest.importorskip("pylibfranka")
     pytest.importorskip("franky_sim")
-    from robot.worker import EstimatorSpec, ProcessWorker
-    spec, at = EstimatorSpec(seed=4), 1500
-    with ProcessWorker(spec) as worker:
-        server = subprocess.Popen([sys.executable, "-m", "robot.franky_load", "--hostname", "127.0.0.1", "--mass",
-                                   "1.0", "--com", "0", "0", "0.05", "--frictionless", "--max-seconds", "60"],
-                                  cwd=os.path.dirname(os.path.abspath(__file__)), stdout=subprocess.PIPE,
-                                  stderr=subprocess.STDOUT, text=True)
-        try:
-            t0, ready = time.monotonic(), False
-            for _ in range(200):                                  # bounded: 200 lines or 60 s
-                line = server.stdout.readline()
-                if "Connect to the server" in line:
-                    ready = True
-                    break
-                if not line or time.monotonic() - t0 > 60:
-                    break
-            assert ready, "franky-sim did not start"
-            b = franka.FrankySimBackend("127.0.0.1", realtime=False)
-            ctrl = franka.make_controller(ROBOT, b.initial.q, "hold")
-            est = spec.build(executor=worker)
-            summary, log = franka.run_loop(_LoadAt(b, server, at), ROBOT, ctrl, est, seconds=5.0)
-        finally:
-            server.terminate()                                    # this server's own process
-            try:
-                server.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                server.kill()
-                server.wait(timeout=10)
+    from robot.franky_load import run_client
+    at = 1500
+    summary, log, est = run_client(seconds=5.0, at=at, mass=1.0, com=(0.0, 0.0, 0.05), seed=4)
     assert summary["cycles"] == 5000 and summary["stopped"] == "end" and summary["missed_cycles"] == 0
     assert np.allclose(np.diff(log["t"]), 1e-3)                   # every robot tick, 1 ms apart
     assert np.abs(log["tau_ext"][at - 200:at - 1]).max() < 0.3    # held, unloaded: the hand is in the model

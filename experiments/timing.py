@@ -267,8 +267,24 @@ def worker_benchmark(seconds: float = 8.0, seed: int = 0, workers=("thread", "pr
     return out
 
 
-if __name__ == "__main__":          # python -m experiments.timing worker
-    if sys.argv[1:] != ["worker"]:
-        print("usage: python -m experiments.timing worker  (the other timings: python sim.py timing)")
+def franky_benchmark(seconds: float = 10.0) -> dict:
+    """franka.py's loop through pylibfranka against franky-sim on 127.0.0.1 (robot.franky_load.run_client: CPIC
+    hold, RME with its estimates in a worker process, 1 kg added to the simulated hand at half time): robot ticks,
+    missed packets (libfranka's durations), the callback times [ms], the estimates and the mass at the end."""
+    from robot.franky_load import run_client
+    summary, _, est = run_client(seconds=seconds, at=int(seconds * 500))
+    return {"robot_ticks": summary["cycles"], "missed_cycles": summary["missed_cycles"],
+            "callback_ms": summary["callback_ms"],
+            "callback_ms_estimate_in_flight": summary["callback_ms_estimate_in_flight"],
+            "estimates": [(round(e.t, 3), e.kind, e.accepted, round(float(e.mean[0]), 3)) for e in est.history],
+            "mass_at_end": float(est.theta[0])}
+
+
+if __name__ == "__main__":          # python -m experiments.timing worker | franky
+    if sys.argv[1:] not in (["worker"], ["franky"]):
+        print("usage: python -m experiments.timing worker | franky  (the other timings: python sim.py timing)")
         sys.exit(2)
-    print_dict("franka.py loop, callback times [ms] by where the estimates run:", worker_benchmark())
+    if sys.argv[1] == "franky":     # needs requirements-robot.txt
+        print_dict("franka.py loop against franky-sim, 10 s, 1 kg added at 5 s:", franky_benchmark())
+    else:
+        print_dict("franka.py loop, callback times [ms] by where the estimates run:", worker_benchmark())

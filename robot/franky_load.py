@@ -4,8 +4,11 @@ the next 1 ms tick (the physics only: the server's own gravity model, and so its
 from __future__ import annotations
 
 import argparse
+import os
 import signal
+import subprocess
 import sys
+import time
 
 import mujoco
 import numpy as np
@@ -37,6 +40,66 @@ def _frictionless(sim):
     """Before the first step (the model exists once the server started the simulation): no joint friction."""
     if sim.model.dof_frictionloss.any():
         sim.model.dof_frictionloss[:] = 0.0
+
+
+class _LoadAt:
+    """A backend that asks the server (SIGUSR1, by its pid) to add its load when the loop reads tick `at`."""
+
+    def __init__(self, inner, server, at):
+        self.inner, self.server, self.at, self.k, self.initial = inner, server, at, 0, inner.initial
+
+    def read(self):
+        self.k += 1
+        if self.k == self.at:
+            os.kill(self.server.pid, signal.SIGUSR1)
+        return self.inner.read()
+
+    def write(self, cmd):
+        self.inner.write(cmd)
+
+    def stop(self):
+        self.inner.stop()
+
+
+def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0, 0.0, 0.05), seed: int = 4,
+               hostname: str = "127.0.0.1", start_timeout: float = 60.0):
+    """franka.py's loop through pylibfranka (CPIC hold, RME with its estimates in a worker process) against this
+    module's server, started frictionless on `hostname` in its own process and stopped by its own pid at the end;
+    the server adds `mass` at `com` to the hand when the loop reads tick `at`. Returns franka.run_loop's (summary,
+    log) and the estimator. Needs pylibfranka and franky-sim (requirements-robot.txt)."""
+    import franka
+    from dynamics import Robot
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec, robot = EstimatorSpec(seed=seed), Robot.panda()
+    with ProcessWorker(spec) as worker:
+        server = subprocess.Popen([sys.executable, "-m", "robot.franky_load", "--hostname", hostname, "--mass",
+                                   str(mass), "--com", *map(str, com), "--frictionless", "--max-seconds",
+                                   str(seconds * 10 + start_timeout)],
+                                  cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            t0, ready = time.monotonic(), False
+            for _ in range(200):                                  # bounded: 200 lines or start_timeout
+                line = server.stdout.readline()
+                if "Connect to the server" in line:
+                    ready = True
+                    break
+                if not line or time.monotonic() - t0 > start_timeout:
+                    break
+            if not ready:
+                raise RuntimeError("franky-sim did not start")
+            backend = franka.FrankySimBackend(hostname, realtime=False)
+            est = spec.build(executor=worker)
+            summary, log = franka.run_loop(_LoadAt(backend, server, at), robot,
+                                           franka.make_controller(robot, backend.initial.q, "hold"), est, seconds)
+        finally:
+            server.terminate()                                    # the server's own process
+            try:
+                server.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                server.kill()
+                server.wait(timeout=10)
+    return summary, log, est
 
 
 def main(argv=None) -> int:
