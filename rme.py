@@ -35,7 +35,7 @@ class RMESettings:
     refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
                                    #   part of the load while it moved: the first estimate reads light by a few %)
     rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
-    refine_within: float = 2.0     # s after the detection; later, no estimate at rest is made (the monitor checks)
+    refine_within: float = 2.0     # s after the detection (in its last 0.5 s calm will do: a creeping arm); then the monitor
     monitor: bool = True           # ours: while the arm is still, check that the compensated estimate explains
                                    #   tau_ext; if it persistently does not, estimate again (see RME.update)
     monitor_threshold: float = 0.3  # Nm, |mean residual - the level last explained| that counts as unexplained (0.1 kg
@@ -228,7 +228,7 @@ class RME:
             self._judge(*request, *future.result())
         idle = self._pending is None and self._job is None and self._queued is None
         if self._refine is not None and idle:
-            if self._still >= s.window:
+            if self._still >= s.window or (self._calm >= s.monitor_window and self._k > self._refine["deadline"] - s.rate / 2):
                 self._on_rest()
             elif self._k > self._refine["deadline"]:
                 self._refine = None                    # the arm never rested: the monitor checks it when it does
