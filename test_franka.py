@@ -308,6 +308,36 @@ def test_dry_run_prints_and_commands_nothing(capsys):
 
 
 # --- pylibfranka against franky-sim (skipped unless both are installed) -------------------------------------------
+def test_a_prepared_load_changes_the_model_as_adding_it_does():
+    """robot.franky_load: the load worked out ahead (prepared_load) and written in one tick (apply_load) leaves the
+    same model as add_point_mass itself: every array, and MuJoCo's own mass matrix and bias at a random state."""
+    import copy
+
+    import mujoco
+
+    from robot.franky_load import add_point_mass, apply_load, prepared_load
+    live, direct = copy.deepcopy(ROBOT.model), copy.deepcopy(ROBOT.model)
+    body = mujoco.mj_name2id(live, mujoco.mjtObj.mjOBJ_BODY, "link7")
+    prepared = prepared_load(live, body, 1.0, (0.0, 0.0, 0.05))
+    assert {f for f, _ in prepared[0]} >= {"body_mass", "body_ipos", "body_subtreemass"}
+    apply_load(live, prepared)
+    add_point_mass(direct, body, 1.0, (0.0, 0.0, 0.05))
+    for f in dir(live):
+        a = getattr(live, f, None)
+        if not f.startswith("_") and isinstance(a, np.ndarray):
+            assert np.array_equal(a, getattr(direct, f)), f
+    q, out = np.random.default_rng(3).uniform(-1, 1, (2, live.nv)), []
+    for model in (live, direct):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = q[0], q[1]
+        mujoco.mj_forward(model, data)
+        M = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, M)
+        out.append(np.concatenate([M.ravel(), data.qfrc_bias]))
+    assert np.array_equal(out[0], out[1])
+    assert float(live.body_mass[body]) == float(ROBOT.model.body_mass[body]) + 1.0
+
+
 def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_hand():
     """franky-sim (frictionless joints, see robot/franky_load.py) on 127.0.0.1; pylibfranka's loop with CPIC and RME
     (estimates in a worker process); 1 kg at 5 cm along the hand's z axis added to the simulated hand's physics at
