@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import gc
 import os
 import signal
 import subprocess
@@ -151,6 +152,8 @@ def main(argv=None) -> int:
         def tick(s):
             ticks[0] += 1
             if ticks[0] == 1:                 # worked out once, beside the ticks (MuJoCo's calls release the GIL)
+                gc.freeze()                   # and the server's heap as it is now is never walked again by a
+                #                               collection between two ticks (a full one took milliseconds)
                 hand = mujoco.mj_name2id(s.model, mujoco.mjtObj.mjOBJ_BODY, "robot0_hand")
                 threading.Thread(target=lambda: ready.append(prepared_load(s.model, hand, args.mass, args.com)),
                                  daemon=True).start()
