@@ -107,6 +107,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     rec = {k: np.full((steps, n), np.nan) for k in ("q", "dq", "tau_J", "tau_ext", "tau", "tau_cmd")}
     rec["t"], rec["theta_hat"], rec["callback_s"] = np.full(steps, np.nan), np.full((steps, 4), np.nan), np.zeros(steps)
     rec["in_flight"] = np.zeros(steps, dtype=bool)     # an estimate was running beside the loop at the cycle's end
+    rec["read_s"], rec["after_s"] = np.zeros(steps), np.zeros(steps)   # waiting for the state; the work after the write
     busy = getattr(getattr(estimator, "executor", None), "busy", lambda: False)
     shares_G = isinstance(controller, CPIC) and controller.robot is robot
     no_theta, zeros = np.zeros(4), np.zeros(n)
@@ -117,8 +118,10 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     gc.disable()                 # and it runs after the write (_collect_garbage), off the state-to-command path
     try:
         for k in range(steps):
+            t_read = time.perf_counter()
             s = backend.read()
             t0 = time.perf_counter()
+            rec["read_s"][k] = t0 - t_read
             tau_ext = paper_tau_ext(s.tau_ext_hat_filtered)
             comp = estimator.update(s.q, s.dq, tau_ext) if estimator is not None else None
             tau, _ = controller.step(s.q, s.dq, comp, tau_ext)
@@ -126,6 +129,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             cmd = safety._command(tau, G)              # (n,) float arrays: checks are for callers outside the loop
             rec["callback_s"][k] = time.perf_counter() - t0
             backend.write(zeros if dry_run else cmd)
+            t_written = time.perf_counter()
             t += s.duration_s if k else 0.0
             missed += max(int(round(s.duration_s * 1000)) - 1, 0) if k else 0
             for key, v in (("q", s.q), ("dq", s.dq), ("tau_J", s.tau_J), ("tau_ext", tau_ext), ("tau", tau),
@@ -139,6 +143,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
                 last_print = t
             if collect:
                 _collect_garbage()
+            rec["after_s"][k] = time.perf_counter() - t_written
         k = steps
     except KeyboardInterrupt:
         stopped = "interrupted (Ctrl-C)"

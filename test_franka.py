@@ -349,8 +349,9 @@ def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_h
     at = 1500
     summary, log, est = run_client(seconds=5.0, at=at, mass=1.0, com=(0.0, 0.0, 0.05), seed=4)
     gaps = np.flatnonzero(np.diff(log["t"]) > 1.5e-3) + 1          # ticks whose state came late, and why
-    late = [(int(k), round(1e3 * float(log["t"][k] - log["t"][k - 1]), 1), round(1e3 * float(log["callback_s"][k - 1]), 2))
-            for k in gaps]                                          # (tick, ms since the last, its callback ms)
+    late = [(int(k), round(1e3 * float(log["t"][k] - log["t"][k - 1]), 1), round(1e3 * float(log["callback_s"][k - 1]), 2),
+             round(1e3 * float(log["after_s"][k - 1]), 2), round(1e3 * float(log["read_s"][k]), 2)) for k in gaps]
+    # (tick, ms since the last, the last callback, the work after its write, the wait for this state) [ms]
     assert summary["cycles"] == 5000 and summary["stopped"] == "end" and summary["missed_cycles"] == 0, late
     assert np.allclose(np.diff(log["t"]), 1e-3)                   # every robot tick, 1 ms apart
     assert np.abs(log["tau_ext"][at - 200:at - 1]).max() < 0.3    # held, unloaded: the hand is in the model
