@@ -346,7 +346,7 @@ def payload_like(Y, d, mass, gate, J=None, max_total=np.inf, side=PAYLOAD_SIDE) 
         return False
     if J is None:
         return True
-    F = _least_squares(J.T, d)[:3]
+    F = pseudo_wrench(J, d, 1e-9, check=False)[:3]              # J^T W = d, least squares (a hair of damping)
     return bool(math.hypot(F[0], F[1]) <= side[0] + side[1] * math.sqrt(F @ F))
 
 

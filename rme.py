@@ -275,8 +275,8 @@ class RME:
         if self._lv.undone(Q[-1], Rs[-s.window:].mean(axis=0)):
             return                         # back to the level before a change that was no payload: its release
         pending = self._refine                   # within refine_within of an accepted change: refer to before it
-        steady = Rs[:steady_prefix(Rs, s.reference, len(Rs) - s.window)]      # the level before, as long as it holds
-        bias = pending["bias"] if pending is not None else self._lv.bias(steady, q_ref)
+        bias = pending["bias"] if pending is not None else self._lv.bias(   # the level before, as long as it holds
+            Rs[:steady_prefix(Rs, s.reference, len(Rs) - s.window)], q_ref)
         before = self.theta.copy()
         if not self._payload_like(Q[-1], Rs[-s.window:].mean(axis=0) - bias, s.min_explained):   # a push, a bias step
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
