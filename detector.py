@@ -104,9 +104,11 @@ class Detector:
                    settings.end_window, settings.force_window]  # rows of the window means, in this order
         lo, hi = np.array([w[0] - 1 for w in windows]), np.array([w[1] for w in windows])
         self._lo, self._hi, self._len = lo, hi, (hi - lo).astype(float)[:, None]
+        self._counts = np.arange(N + 1)                         # ring positions of the prefix sums (shift)
         self.count, self._quiet = 0, 0
         self.reference_torque = np.zeros(n)   # (n,) tau_ref at the last detection (the torque before the change)
         self._status, self._evaluated = None, 0  # the last evaluation (see status) and its sample count
+        self._frozen = None                      # (raw, prefix) as they were at that evaluation, if shifted since
 
     def reset(self):
         """Forget the history (the next detection needs a full window again)."""
@@ -114,21 +116,21 @@ class Detector:
 
     def shift(self, d_tau, d_force):
         """Re-express the buffered samples as if d_tau (n,) [Nm] and d_force (3,) [N] had been subtracted from each:
-        after the compensation changes by d_tau, the detector keeps watching the residual without a blind window."""
+        after the compensation changes by d_tau, the detector keeps watching the residual without a blind window.
+        The prefix sums change linearly (P_j by its count c_j of samples: the square column by -2 d.P_j[tau] +
+        c_j |d|^2, the others by -c_j d), so no sum is rebuilt: O(window) in a few vector operations."""
         N, n, k = self.settings.window, self.n, self.count
-        _ = self.status                                          # the last evaluation, on the samples as they were
-        d_tau, d_force = np.asarray(d_tau, dtype=float), np.asarray(d_force, dtype=float)
-        have = min(k, N)
-        rows = (k - have + np.arange(have)) % N                  # the buffered samples, oldest first
-        x = self._raw[rows]
-        x[:, 0] += -2.0 * x[:, 1:1 + n] @ d_tau + d_tau @ d_tau
-        x[:, 1:1 + n] -= d_tau
-        x[:, 1 + n:] -= d_force
-        self._raw[rows] = x
-        self._prefix[:] = 0.0                                    # rebuild the prefix sums from the samples held
-        P = np.cumsum(x, axis=0)
-        self._prefix[(k - have + 1 + np.arange(have)) % (N + 1)] = P
-        self._prefix[(k - have) % (N + 1)] = 0.0
+        if self._status is None and self._evaluated and self._frozen is None:
+            self._frozen = (self._raw.copy(), self._prefix.copy())   # status: the last evaluation, as the samples were
+        d = np.concatenate([np.asarray(d_tau, dtype=float).ravel(), np.asarray(d_force, dtype=float).ravel()])
+        dd = float(d[:n] @ d[:n])
+        held = (self._counts - (k - min(k, N))) % (N + 1)        # samples summed in each prefix entry since the
+        shifted = [(self._prefix, held)]                         #   oldest held (entries outside: unused)
+        if self.settings.algorithm == "as_printed":              # the only reader of single samples (raw)
+            shifted.append((self._raw, np.ones(N)))
+        for x, c in shifted:
+            x[:, 0] += c * dd - 2.0 * (x[:, 1:1 + n] @ d[:n])
+            x[:, 1:] -= np.multiply.outer(c, d)
 
     def update(self, tau_ext, force=None, J=None) -> bool:
         """Add one sample: tau_ext (n,) [Nm, paper sign] and either the world-frame pseudo-force (3,) [N] or the
@@ -164,7 +166,7 @@ class Detector:
             return False
         if k < N:
             return False
-        self._status, self._evaluated = None, k
+        self._status, self._evaluated, self._frozen = None, k, None
         fired = self._evaluate(k)
         if fired:
             self._quiet = self.settings.refractory
@@ -175,7 +177,11 @@ class Detector:
         """dict of the last evaluation: rapid, settled, stabilisation, force_change, fired (None before the first);
         computed on demand (the 1 kHz path stops at the activation test when nothing changed)."""
         if self._status is None and self._evaluated:
-            self._status = self._evaluate(self._evaluated, full=True)
+            now, (self._raw, self._prefix) = (self._raw, self._prefix), self._frozen or (self._raw, self._prefix)
+            try:
+                self._status = self._evaluate(self._evaluated, full=True)
+            finally:
+                self._raw, self._prefix = now
         return self._status
 
     def _evaluate(self, k, full=False):
@@ -361,6 +367,7 @@ def _least_squares(A, d):
 def safe_theta(new, old, max_mass):
     """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the current one."""
     new = np.asarray(new, dtype=float)
-    if new.shape != (4,) or not np.all(np.isfinite(new)):
+    if new.shape != (4,) or not all(map(math.isfinite, new.tolist())):
         return old
-    return np.array([min(max(new[0], 0.0), max_mass), *np.clip(new[1:], -1.0, 1.0)])
+    m, *r = new.tolist()                                  # plain floats: this runs inside the 1 kHz loop
+    return np.array([min(max(m, 0.0), max_mass)] + [min(max(x, -1.0), 1.0) for x in r])

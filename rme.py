@@ -6,96 +6,16 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 import vi
-from detector import Detector, DetectorSettings, LevelMap, Levels, payload_like, safe_theta, steady_prefix
+from detector import Detector, LevelMap, Levels, payload_like, safe_theta, steady_prefix
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
+from rme_settings import Estimate, RMESettings
 
-
-
-@dataclass(frozen=True)
-class RMESettings:
-    window: int = 200              # samples of the estimation window: 200 ms at 1 kHz (Sec. 4, App. E)
-    reference: int = 30            # samples at the start of the detector's buffer (which checks they precede the
-                                   #   change) whose mean tau_ext the window is referred to, extended while the level
-                                   #   holds (detector.steady_prefix) (ours: removes the pose-dependent bias)
-    rate: float = 1000.0           # Hz, the control loop (Franka's 1 kHz)
-    use_network: bool = True       # prior mean from the network (False: zero prior mean, Table 1's ablation)
-    asynchronous: bool = True      # ours: compensation starts once the estimate's own wall time has passed, as if
-                                   #   the estimate ran beside the loop (False: applied on the detection sample)
-    max_mass: float = 3.0          # kg, Panda's rated payload: the compensation never assumes more
-    max_com: float = 0.3           # m, |rx|, |ry|, |rz| of a payload a hand can carry (ours); an estimate with its
-                                   #   CoM further out is not a payload (a push, a bias change) and is not applied
-    min_explained: float = 0.9     # ours: share of the window's torque change a new estimate must explain; a bias
-                                   #   change after a large move explains 0.6-0.7, loads 0.97-1.0 (pick-place, basket)
-    refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
-                                   #   part of the load while it moved: the first estimate reads light by a few %)
-    rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
-    refine_within: float = 2.0     # s after the detection (in its last 0.5 s calm will do: a creeping arm); then the monitor
-    monitor: bool = True           # ours: while the arm is still, check that the compensated estimate explains
-                                   #   tau_ext; if it persistently does not, estimate again (see RME.update)
-    monitor_threshold: float = 0.3  # Nm, |mean residual - the level last explained| that counts as unexplained (0.1 kg
-                                   #   moves the Panda's torques by ~0.5 Nm; the realistic bias drifts < 0.1 Nm at rest)
-    monitor_window: int = 300      # samples (300 ms): the arm calm and the residual level steady this long
-    monitor_far: float = 2.0       # Nm: at a pose never seen, a level this far from the nearest known one is no
-                                   #   sensor bias (a few tenths of a Nm per joint) but a change missed (e.g. in a push)
-    monitor_speed: float = 0.02    # rad/s: every joint slower than this counts as calm for the monitor (friction
-                                   #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
-    first_explained: float = 0.97  # the monitor's gate at the first rest, against no payload at all: real loads
-                                   #   explain 0.97-1.0 there, the realistic sensor's bias alone about 0.5
-    pose_tolerance: float = 0.3    # rad on every joint: within this of the pose where a level was explained, that level
-                                   #   still holds (the realistic sensor's bias varies over radians; a 3 kg load
-                                   #   or a 60 N push moves the compliant arm by about 0.1-0.3 rad)
-    max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
-    accumulate: bool = True        # ours: at rest at a new orientation, the same payload, combine the windows seen
-    accumulate_angle: float = 0.2  # rad: gravity turned this far in the ee frame since every window kept (rz shows)
-    vi: vi.VISettings = field(default_factory=vi.VISettings)
-    detector: DetectorSettings = field(default_factory=DetectorSettings)
-
-    def __post_init__(self):
-        keep, settled = self.detector.window, self.detector.settled_window[1]
-        checks = [("window", self.window, 20 <= self.window <= keep, f"20..{keep} samples (the detector's window)"),
-                  ("reference", self.reference, 1 <= self.reference <= settled,
-                   f"1..{settled} samples (the detector checks those precede the change)"),
-                  ("rate", self.rate, self.rate > 0, "a rate > 0 Hz"),
-                  ("max_mass", self.max_mass, self.max_mass > 0, "a mass > 0 kg"),
-                  ("max_com", self.max_com, self.max_com > 0, "a distance > 0 m"),
-                  ("min_explained", self.min_explained, self.min_explained <= 1, "a share <= 1"),
-                  ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
-                  ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
-                  ("monitor_far", self.monitor_far, self.monitor_far > self.monitor_threshold, "a torque > the threshold"),
-                  ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
-                   f"{self.window}..{keep} samples"),
-                  ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
-                  ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s"),
-                  ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)")]
-        for name, value, ok, want in checks:
-            if not ok or (isinstance(value, float) and np.isnan(value)):
-                raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
-
-
-@dataclass
-class Estimate:
-    """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""
-    mean: np.ndarray               # (4,)
-    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (vi.noise_from_window)
-    cov: np.ndarray                # (4, 4) that covariance
-    prior: np.ndarray              # (4,) the prior mean (network output, or zeros)
-    observed: np.ndarray           # (4,) bool: the window(s) observed it (std well below the prior's; else the prior)
-    seconds: float                 # wall time of network + VI
-    iterations: int
-    converged: bool
-    t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
-    explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
-    accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection", "at rest" (once the arm is still), "monitor"
-                                     #   (the compensation no longer explained tau_ext at rest) or "window"
-    applied: float = float("nan")    # stream time the compensation started using it (update only)
-    reason: str = ""                 # why it was not applied (update only)
+__all__ = ["RME", "RMESettings", "Estimate"]
 
 
 class RME:
@@ -107,7 +27,8 @@ class RME:
                  rng: np.random.Generator | None = None, correction=None, executor=None):
         self.robot = Robot.panda() if robot is None else robot
         self.settings, self.correction, self.executor = settings, correction, executor
-        self._job, self._queued = None, None           # (future, request, sample) in flight; a request waiting
+        self._job, self._queued = None, None           # (future, request, sample, received) in flight; a request
+        self._steps = None                             # (generator, sample): a detection formed a step per sample
         self.rng = np.random.default_rng(0) if rng is None else rng
         self.net = MismatchNet.load(weights) if settings.use_network and weights is not None else None  # or ValueError
         if not isinstance(settings, RMESettings):
@@ -131,11 +52,11 @@ class RME:
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
-    def _payload_like(self, q, d, gate) -> bool:
-        """detector.payload_like for a residual change d (n,) at pose q, from the payload compensated now."""
+    def _payload_like(self, q, d, gate, mass=None) -> bool:
+        """detector.payload_like for a residual change d (n,) at pose q, from the payload mass compensated (now)."""
         _, R, J = self.robot.kinematics(q)
-        return payload_like(self.robot.payload_regressor_from(J, R), d, self.theta[0], gate, J,
-                            1.2 * self.settings.max_mass)
+        return payload_like(self.robot.payload_regressor_from(J, R), d, self.theta[0] if mass is None else mass, gate,
+                            J, 1.2 * self.settings.max_mass)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -172,7 +93,8 @@ class RME:
         return q, tau
 
     def _estimate(self, q, tau):
-        """Network prior and VI on checked, referred, corrected windows (or lists): (Estimate, Y or their list)."""
+        """Network prior and VI on checked, referred, corrected windows (or lists): (Estimate, S) with S (n + 5, 4)
+        what judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows)."""
         start, many, Ys, priors = time.perf_counter(), isinstance(q, list), [], []
         for qi, ti in zip(q if many else [q], tau if many else [tau]):
             _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
@@ -184,7 +106,9 @@ class RME:
         post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng, speed=speed,
                       sigma_prior=None if self.net is None else self.net.prior_std(prior, self.settings.vi.sigma_prior, R[-1]))
         return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
-                        time.perf_counter() - start, post.iterations, post.converged), (Ys if many else Ys[0])
+                        time.perf_counter() - start, post.iterations, post.converged), np.vstack([
+            Ys[-1].mean(axis=0), np.einsum("tij,tik->jk", Ys[-1], Ys[-1]), (tau[-1] if many else tau).ravel() @
+            Ys[-1].reshape(-1, 4)])
 
     # --- streaming -----------------------------------------------------------------------------
     def update(self, q, dq, tau_ext) -> np.ndarray:
@@ -216,17 +140,22 @@ class RME:
         if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
             self._fq, self._P = q, np.linalg.solve(J @ J.T + s.detector.lam * np.eye(6), J)[:3]
         if self.detector.push(self._r[i], self._P @ self._r[i]) and self._k >= keep:
-            if self._job is None:
+            if self._job is None and self._steps is None and (self.executor is None or self._pending is None):
                 self._on_detection()
             else:                                      # formed once the job in flight is done (the newest wins)
                 self._queued = self._k
+        if self._steps is not None and self._steps[1] < self._k and next(self._steps[0], True):
+            self._steps = None                         # with an executor: one step per sample, from the next one
         speed = np.abs(dq).max()
         self._still = self._still + 1 if speed < s.rest_speed else 0
         self._calm = self._calm + 1 if speed < s.monitor_speed else 0
-        if self._job is not None and self._job[2] < self._k and self._job[0].done():   # polled from the next sample on
-            (future, request, _), self._job = self._job, None
-            self._judge(*request, *future.result())
-        idle = self._pending is None and self._job is None and self._queued is None
+        if self._job is not None and self._job[2] < self._k:           # polled from the next sample on
+            if self._job[3]:                           # received on the sample before: judged now
+                (future, request, *_), self._job = self._job, None
+                self._judge(*request, *future.result())
+            elif self._job[0].done():
+                self._job = (*self._job[:3], True)
+        idle = self._pending is None and self._job is None and self._queued is None and self._steps is None
         if self._refine is not None and idle:
             if self._still >= s.window or (self._calm >= s.monitor_window and self._k > self._refine["deadline"] - s.rate / 2):
                 self._on_rest()
@@ -237,8 +166,8 @@ class RME:
         if self._pending is not None and self._k >= self._pending[0]:
             self._apply(*self._pending[1:], Y, J)
             tau_mm = Y @ self._phi
-        if self._queued is not None and self._job is None:             # under the compensation just applied
-            asked, self._queued = self._queued, None
+        if self._queued is not None and self._job is None and self._steps is None and self._pending is None:
+            asked, self._queued = self._queued, None   # under the compensation just applied
             self._on_detection(asked)
         self._last = np.clip(-tau_mm, -self._limit, self._limit)
         return self._last
@@ -268,21 +197,33 @@ class RME:
 
     def _on_detection(self, asked=None):
         """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
-        change during a pending estimate at rest supersedes it. asked: the sample of a detection made during a job."""
+        change during a pending estimate at rest supersedes it. asked: the sample of a detection made during a job.
+        With an executor its steps run one per sample (no cycle of the loop carries them all); else all at once."""
+        steps = self._detection(asked)
+        if self.executor is not None:              # the first step (the window) now, the next ones from the next sample
+            self._steps = (steps, self._k) if next(steps, True) is None else None
+        else:
+            for _ in steps:
+                pass
+
+    def _detection(self, asked):
+        """_on_detection's steps (a generator: each yield hands the rest to the next sample)."""
         s = self.settings
         Q, TAU, Rs = self._buffer()
-        q_ref = Q[:s.reference].mean(axis=0)
+        q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
+        pending = self._refine             # within refine_within of an accepted change: refer to before it
         if self._lv.undone(Q[-1], Rs[-s.window:].mean(axis=0)):
             return                         # back to the level before a change that was no payload: its release
-        pending = self._refine                   # within refine_within of an accepted change: refer to before it
+        yield
         bias = pending["bias"] if pending is not None else self._lv.bias(   # the level before, as long as it holds
             Rs[:steady_prefix(Rs, s.reference, len(Rs) - s.window)], q_ref)
-        before = self.theta.copy()
-        if not self._payload_like(Q[-1], Rs[-s.window:].mean(axis=0) - bias, s.min_explained):   # a push, a bias step
+        yield
+        if not self._payload_like(Q[-1], Rs[-s.window:].mean(axis=0) - bias, s.min_explained, before[0]):
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
-            return
+            return                         # a push, a bias step
+        yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        def then(e):
+        def then(e, Y):
             self._lv.rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
                 self._refine = None        #   pending estimate at rest
@@ -296,7 +237,7 @@ class RME:
         s, r = self.settings, self._refine
         self._refine = None
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e: None, level=r["known"])
+        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e, Y: None, level=r["known"])
 
     def _check_consistency(self):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -327,12 +268,11 @@ class RME:
         else:                                    # the new estimate must make the level consistent again: within
             gap = np.linalg.norm(level - reference)  # 6 % of a large gap (a heavy load's sag moves the bias); far from
             tol = 0.25 * gap if kind == "far" else min(max(s.monitor_threshold, 0.06 * gap), 0.5 * gap)   # any pose: 3/4
-            accept = lambda e, Tw, Y: np.linalg.norm((Tw - Y @ vi.phi_of(safe_theta(
-                e.mean, self.theta, s.max_mass))).mean(axis=0)) <= tol
-        def then(e):
+            accept = lambda e, Tw, Ybar: np.linalg.norm(Tw.mean(axis=0) - Ybar @ vi.phi_of(safe_theta(
+                e.mean, self.theta, s.max_mass))) <= tol
+        def then(e, Y):
             if e.accepted and first:                                   # what the payload leaves is the bias
-                Y = self.robot.payload_regressor(Q[-s.window:])
-                self._pending[2] = (q, (TAU[-s.window:] - Y @ vi.phi_of(e.mean)).mean(axis=0))
+                self._pending[2] = (q, TAU[-s.window:].mean(axis=0) - Y @ vi.phi_of(e.mean))
             elif first:
                 self._lv.explained.put(q, level)                             # no payload: the level is the bias
                 self.history.pop()                                     # (establishing it is not an estimate)
@@ -345,10 +285,10 @@ class RME:
         self._calm = 0
 
     def _leaves(self, q, level):
-        """then(e) for an estimate at pose q, where the residual level is `level` now: once accepted, the level the new
+        """then(e, Y) for an estimate at pose q, where the residual level is `level` now: once accepted, the level the new
         compensation leaves there is the explained one."""
         Yq, phi = self.robot.payload_regressor(q), self._phi.copy()
-        return lambda e: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
+        return lambda e, Y=None: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
             e.mean, self.theta, self.settings.max_mass)) - phi))
 
     def _turned(self, q) -> bool:
@@ -361,24 +301,26 @@ class RME:
         """Estimate on the window Qw, TAUw - bias (referred to the torque before a change; with the windows of
         `evidence`, combined) now, or as a job on the executor (judged once update finds it done)."""
         Tw = TAUw - bias
-        request = (self._k if asked is None else asked, Qw.copy(), Tw, bias, theta_before, kind, then, accept, level)
+        request = (self._k if asked is None else asked, Qw, Tw, bias, theta_before, kind, then, accept, level)
         Qs, Ts = [x[0] for x in evidence] + [Qw], [x[1] for x in evidence] + [Tw]
-        args = (Qs, Ts) if evidence else (Qw.copy(), Tw.copy())
+        args = (Qs, Ts) if evidence else (Qw, Tw)          # windows of their own (never written again)
         if self.executor is None:
             self._judge(*request, *self._estimate(*args))
         else:
-            self._job = (self.executor.submit(self._estimate, *args), request, self._k)
+            self._job = (self.executor.submit(self._estimate, *args), request, self._k, False)
 
-    def _judge(self, k, Qw, Tw, bias, theta_before, kind, then, accept, level, e, Y):
+    def _judge(self, k, Qw, Tw, bias, theta_before, kind, then, accept, level, e, S):
         """Judge the estimate e of the window requested at sample k against the payload before the change, schedule
-        it if accepted (accept(e, Tw, Y), default: explained share >= min_explained) and hand it to then(e);
-        level: the residual level it will leave."""
-        s, Y = self.settings, Y[-1] if isinstance(Y, list) else Y          # the newest window's regressor
+        it if accepted (accept(e, Tw, Ybar) with Ybar the window's mean regressor, default: explained share >=
+        min_explained) and hand it to then(e, Ybar); level: the residual level it will leave. S: see _estimate
+        (|Tw - Y phi|^2 summed over the window = |Tw|^2 - 2 phi.sum Y^T Tw + phi^T sum Y^T Y phi, in O(1))."""
+        s, n, tt = self.settings, self.robot.n, float(np.vdot(Tw, Tw))
+        Ybar, left = S[:n], lambda phi: tt - 2.0 * (S[n + 4] @ phi) + phi @ S[n:n + 4] @ phi
         e.t, e.kind = k / s.rate, kind
-        before = max(np.sum((Tw - Y @ vi.phi_of(theta_before)) ** 2), 1e-12)   # what the estimate before leaves
-        e.explained = 1.0 - np.sum((Tw - Y @ vi.phi_of(e.mean)) ** 2) / before
+        before = max(left(vi.phi_of(theta_before)), 1e-12)          # what the estimate before leaves
+        e.explained = 1.0 - left(vi.phi_of(e.mean)) / before
         plausible = bool((e.mean[0] < 0.1 or np.all(np.abs(e.mean[1:]) <= s.max_com)) and e.mean[0] <= 1.2 * s.max_mass)
-        e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Y))
+        e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Ybar))
         if not plausible:
             e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "
                         f"arm carries (max_mass {s.max_mass} kg, max_com {s.max_com} m)")
@@ -386,11 +328,11 @@ class RME:
             e.reason = (f"explains only {100 * e.explained:.0f} % of the change" if accept is None else
                         "it does not make the compensation consistent with tau_ext")
         self.history.append(e)
-        if e.accepted:                     # with an executor, on the sample the job is found done
+        if e.accepted:                     # with an executor, on the sample after the job is found done
             self._evidence = (self._evidence + [(Qw, Tw, bias)])[-4:] if kind == "accumulated" else [(Qw, Tw, bias)]
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
-            self._pending = [k + delay if self.executor is None else self._k, e, level]
-        then(e)
+            self._pending = [k + delay if self.executor is None else self._k + 1, e, level]
+        then(e, Ybar)
 
 
 if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module

@@ -1,0 +1,91 @@
+"""What the pipeline (rme.py) is told and what it returns: RMESettings, the streaming estimator's settings, and
+Estimate, one posterior over the payload. rme re-exports both."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import vi
+from detector import DetectorSettings
+
+
+@dataclass(frozen=True)
+class RMESettings:
+    window: int = 200              # samples of the estimation window: 200 ms at 1 kHz (Sec. 4, App. E)
+    reference: int = 30            # samples at the start of the detector's buffer (which checks they precede the
+                                   #   change) whose mean tau_ext the window is referred to, extended while the level
+                                   #   holds (detector.steady_prefix) (ours: removes the pose-dependent bias)
+    rate: float = 1000.0           # Hz, the control loop (Franka's 1 kHz)
+    use_network: bool = True       # prior mean from the network (False: zero prior mean, Table 1's ablation)
+    asynchronous: bool = True      # ours: compensation starts once the estimate's own wall time has passed, as if
+                                   #   the estimate ran beside the loop (False: applied on the detection sample)
+    max_mass: float = 3.0          # kg, Panda's rated payload: the compensation never assumes more
+    max_com: float = 0.3           # m, |rx|, |ry|, |rz| of a payload a hand can carry (ours); an estimate with its
+                                   #   CoM further out is not a payload (a push, a bias change) and is not applied
+    min_explained: float = 0.9     # ours: share of the window's torque change a new estimate must explain; a bias
+                                   #   change after a large move explains 0.6-0.7, loads 0.97-1.0 (pick-place, basket)
+    refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
+                                   #   part of the load while it moved: the first estimate reads light by a few %)
+    rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
+    refine_within: float = 2.0     # s after the detection (in its last 0.5 s calm will do: a creeping arm); then the monitor
+    monitor: bool = True           # ours: while the arm is still, check that the compensated estimate explains
+                                   #   tau_ext; if it persistently does not, estimate again (see RME.update)
+    monitor_threshold: float = 0.3  # Nm, |mean residual - the level last explained| that counts as unexplained (0.1 kg
+                                   #   moves the Panda's torques by ~0.5 Nm; the realistic bias drifts < 0.1 Nm at rest)
+    monitor_window: int = 300      # samples (300 ms): the arm calm and the residual level steady this long
+    monitor_far: float = 2.0       # Nm: at a pose never seen, a level this far from the nearest known one is no
+                                   #   sensor bias (a few tenths of a Nm per joint) but a change missed (e.g. in a push)
+    monitor_speed: float = 0.02    # rad/s: every joint slower than this counts as calm for the monitor (friction
+                                   #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
+    first_explained: float = 0.97  # the monitor's gate at the first rest, against no payload at all: real loads
+                                   #   explain 0.97-1.0 there, the realistic sensor's bias alone about 0.5
+    pose_tolerance: float = 0.3    # rad on every joint: within this of the pose where a level was explained, that level
+                                   #   still holds (the realistic sensor's bias varies over radians; a 3 kg load
+                                   #   or a 60 N push moves the compliant arm by about 0.1-0.3 rad)
+    max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
+    accumulate: bool = True        # ours: at rest at a new orientation, the same payload, combine the windows seen
+    accumulate_angle: float = 0.2  # rad: gravity turned this far in the ee frame since every window kept (rz shows)
+    vi: vi.VISettings = field(default_factory=vi.VISettings)
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
+
+    def __post_init__(self):
+        keep, settled = self.detector.window, self.detector.settled_window[1]
+        checks = [("window", self.window, 20 <= self.window <= keep, f"20..{keep} samples (the detector's window)"),
+                  ("reference", self.reference, 1 <= self.reference <= settled,
+                   f"1..{settled} samples (the detector checks those precede the change)"),
+                  ("rate", self.rate, self.rate > 0, "a rate > 0 Hz"),
+                  ("max_mass", self.max_mass, self.max_mass > 0, "a mass > 0 kg"),
+                  ("max_com", self.max_com, self.max_com > 0, "a distance > 0 m"),
+                  ("min_explained", self.min_explained, self.min_explained <= 1, "a share <= 1"),
+                  ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
+                  ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
+                  ("monitor_far", self.monitor_far, self.monitor_far > self.monitor_threshold, "a torque > the threshold"),
+                  ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
+                   f"{self.window}..{keep} samples"),
+                  ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
+                  ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s"),
+                  ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)")]
+        for name, value, ok, want in checks:
+            if not ok or (isinstance(value, float) and np.isnan(value)):
+                raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
+
+
+@dataclass
+class Estimate:
+    """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""
+    mean: np.ndarray               # (4,)
+    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (vi.noise_from_window)
+    cov: np.ndarray                # (4, 4) that covariance
+    prior: np.ndarray              # (4,) the prior mean (network output, or zeros)
+    observed: np.ndarray           # (4,) bool: the window(s) observed it (std well below the prior's; else the prior)
+    seconds: float                 # wall time of network + VI
+    iterations: int
+    converged: bool
+    t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
+    explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
+    accepted: bool = True            # False: the change did not look like a payload and was not compensated
+    kind: str = "window"             # "detection", "at rest" (once the arm is still), "monitor"
+                                     #   (the compensation no longer explained tau_ext at rest) or "window"
+    applied: float = float("nan")    # stream time the compensation started using it (update only)
+    reason: str = ""                 # why it was not applied (update only)
