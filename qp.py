@@ -4,7 +4,8 @@ Eq. 8; Appendix B, D). cpic.py re-exports solve_qp; experiments/qp_bench.py time
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.linalg import blas, lapack
@@ -15,12 +16,17 @@ class QPInfo:
     """status: "optimal" | "infeasible" | "max_iterations" | "degenerate" (numerical breakdown: overflow, NaN, or
     an answer that fails the final feasibility check); iterations: active-set changes (adds + drops); active:
     indices of the active constraints (k,); multipliers: lambda (m,) >= 0, zero off the active set; residual: max
-    KKT violation (abs)."""
+    KKT violation (abs), worked out when first read (a tenth of a solve that seldom needs it)."""
     status: str
     iterations: int
     active: np.ndarray
     multipliers: np.ndarray
-    residual: float
+    kkt: tuple = field(default=(), repr=False, compare=False)    # what residual needs: (H, g, A, x, W, r, r_min)
+
+    @cached_property
+    def residual(self) -> float:
+        H, g, A, x, W, r, r_min = self.kkt
+        return _residual(H, g, A, x, self.multipliers, W, r, r_min)
 
 
 def solve_qp(H, g, A, b, active=None, max_iterations=None):
@@ -42,7 +48,7 @@ def solve_qp(H, g, A, b, active=None, max_iterations=None):
     y, status, it, W, mult = _unit(VT, blas.dtrsv(L, g, 1, 0, 1), b, W, int(max_iterations), 1e-11)
     x = blas.dtrsv(L, y, 1, 0, 1, 1)                  # x = L^-T y
     status, r, r_min = _checked_answer(A, b, x, status)
-    return x, QPInfo(status, it, np.array(W, dtype=int), mult, _residual(H, g, A, x, mult, W, r, r_min))
+    return x, QPInfo(status, it, np.array(W, dtype=int), mult, (H, g, A, x.copy(), W, r, r_min))
 
 
 def _checked_problem(H, g, A, b):
