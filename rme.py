@@ -222,6 +222,10 @@ class RME:
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
             return                         # a push, a bias step
         yield
+        Qw, Tw, prepare = Q[-s.window:], TAU[-s.window:] - bias, getattr(self.executor, "prepare", None)
+        if prepare is not None:            # the window into the worker's shared memory now, the job on the next sample
+            prepare(Qw, Tw)
+            yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
         def then(e, Y):
             self._lv.rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
@@ -229,7 +233,7 @@ class RME:
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
                 self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Q[-s.window:], TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known)
+        self._change(Qw, TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
@@ -297,10 +301,11 @@ class RME:
         return all(np.arccos(np.clip(g(q) @ g(Q.mean(axis=0)), -1, 1)) > self.settings.accumulate_angle
                    for Q, *_ in self._evidence)
 
-    def _change(self, Qw, TAUw, bias, theta_before, kind, then, accept=None, level=None, asked=None, evidence=()):
-        """Estimate on the window Qw, TAUw - bias (referred to the torque before a change; with the windows of
+    def _change(self, Qw, TAUw, bias, theta_before, kind, then, accept=None, level=None, asked=None, evidence=(),
+                Tw=None):
+        """Estimate on the window Qw, Tw = TAUw - bias (referred to the torque before a change; with the windows of
         `evidence`, combined) now, or as a job on the executor (judged once update finds it done)."""
-        Tw = TAUw - bias
+        Tw = TAUw - bias if Tw is None else Tw
         request = (self._k if asked is None else asked, Qw, Tw, bias, theta_before, kind, then, accept, level)
         Qs, Ts = [x[0] for x in evidence] + [Qw], [x[1] for x in evidence] + [Tw]
         args = (Qs, Ts) if evidence else (Qw, Tw)          # windows of their own (never written again)
