@@ -223,6 +223,24 @@ def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
     assert abs(got[0][0].mean[0] - 1.0) < 0.1                    # and it is an estimate of the payload
 
 
+def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
+    """prepare(q, tau) puts the windows in shared memory ahead of submit; a submit with other arrays (equal or not)
+    sends its own, so a stale preparation never answers another job."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=3)
+    (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8), [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
+    here = spec.build()
+    ref_a, ref_b = here._estimate(q_a, tau_a)[0], here._estimate(q_b, tau_b)[0]
+    with ProcessWorker(spec) as worker:
+        there = spec.build(executor=worker)
+        worker.prepare(q_a, tau_a)
+        got_a = worker.submit(there._estimate, q_a, tau_a).result()[0]
+        worker.prepare(q_a, tau_a)                     # prepared, then another window submitted
+        got_b = worker.submit(there._estimate, q_b, tau_b).result()[0]
+    assert np.array_equal(got_a.mean, ref_a.mean) and np.array_equal(got_b.mean, ref_b.mean)
+    assert abs(got_a.mean[0] - 1.0) < 0.1 and abs(got_b.mean[0] - 0.4) < 0.1
+
+
 def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
     from robot.worker import EstimatorSpec, ProcessWorker, make_worker
     with pytest.raises(ValueError, match="weights"):
