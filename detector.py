@@ -231,10 +231,11 @@ class Detector:
 class LevelMap:
     """Residual levels (n,) by pose: the torque the arm's own sensors and model error leave at a pose q (n,) when
     the compensation is right (a real Panda's bias is pose dependent). at(q): the level stored nearest to q within
-    `tolerance` rad on every joint, or None; put(q, level) replaces that one or adds it (at most `size` kept)."""
+    `tolerance` rad on every joint, or None; put(q, level, anchor) replaces that one or adds it (at most `size`
+    kept); anchor_at(q): the level it had when it was last put without an anchor (followed since: see Levels.judge)."""
 
     def __init__(self, tolerance: float, size: int = 64):
-        self.tolerance, self.size, self.q, self.level = tolerance, size, [], []
+        self.tolerance, self.size, self.q, self.level, self.anchor = tolerance, size, [], [], []
 
     def __len__(self):
         return len(self.q)
@@ -251,14 +252,19 @@ class LevelMap:
         i = self._nearest(q, anywhere)
         return None if i is None else self.level[i]
 
-    def put(self, q, level):
+    def anchor_at(self, q, anywhere=False):
+        i = self._nearest(q, anywhere)
+        return None if i is None else self.anchor[i]
+
+    def put(self, q, level, anchor=None):
         i = self._nearest(q)
         if i is not None:
-            del self.q[i], self.level[i]
+            del self.q[i], self.level[i], self.anchor[i]
         self.q.append(np.array(q, dtype=float))
         self.level.append(np.array(level, dtype=float))
+        self.anchor.append(self.level[-1] if anchor is None else np.array(anchor, dtype=float))
         if len(self.q) > self.size:
-            del self.q[0], self.level[0]
+            del self.q[0], self.level[0], self.anchor[0]
 
 
 class Levels:
@@ -299,8 +305,11 @@ class Levels:
                 self.explained.put(q, level)
                 return "new"
         elif not first and near(level, trusted):
-            self.explained.put(q, level)                               # explained: follow the slow bias drift
-            return None
+            anchor = self.explained.anchor_at(q)
+            if near(level, anchor):                                    # explained: follow the slow bias drift, as
+                self.explained.put(q, level, anchor)                   # far as threshold from where it was explained
+                return None
+            trusted = anchor           # beyond: a slow change (friction letting go of a load's part as the arm creeps)
         reference = np.zeros(len(level)) if first else trusted
         if not is_payload(level - reference, gates[0] if first else gates[1]):
             (self.explained if first else self.muted).put(q, level)    # the bias; or e.g. a person holding the arm

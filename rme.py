@@ -159,7 +159,7 @@ class RME:
         if self._refine is not None and idle:
             if self._still >= s.window or (self._calm >= s.monitor_window and self._k > self._refine["deadline"] - s.rate / 2):
                 self._on_rest()
-            elif self._k > self._refine["deadline"]:
+            elif self._k > self._refine["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = None                    # the arm never rested: the monitor checks it when it does
         elif s.monitor and idle and self._calm >= s.monitor_window and self._k % 10 == 0:
             self._check_consistency()
@@ -211,7 +211,7 @@ class RME:
         s = self.settings
         Q, TAU, Rs = self._buffer()
         q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
-        pending = self._refine             # within refine_within of an accepted change: refer to before it
+        pending = self._refine             # before the arm rested after an accepted change: refer to before it
         if self._lv.undone(Q[-1], Rs[-s.window:].mean(axis=0)):
             return                         # back to the level before a change that was no payload: its release
         yield

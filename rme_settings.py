@@ -28,7 +28,8 @@ class RMESettings:
     refine: bool = True            # ours: estimate again once the arm is still after a detection (friction held
                                    #   part of the load while it moved: the first estimate reads light by a few %)
     rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3)
-    refine_within: float = 2.0     # s after the detection (in its last 0.5 s calm will do: a creeping arm); then the monitor
+    refine_within: float = 2.0     # s after the detection for the arm to be still; from its last 0.5 s on, calm will do
+                                   #   (a creeping arm), up to 3 x refine_within (a push kept it moving); then the monitor
     monitor: bool = True           # ours: while the arm is still, check that the compensated estimate explains
                                    #   tau_ext; if it persistently does not, estimate again (see RME.update)
     monitor_threshold: float = 0.3  # Nm, |mean residual - the level last explained| that counts as unexplained (0.1 kg

@@ -231,3 +231,26 @@ def test_steady_prefix_matches_a_brute_force_scan():
         assert steady_prefix(R, first, 300, band, span) == want
         if runs:
             assert runs[0] > step - span        # never ends before the step could be seen
+
+
+def test_an_explained_level_follows_a_slow_drift_only_as_far_as_the_threshold_from_where_it_was_explained():
+    """Levels.judge follows a residual level that moves less than `threshold` between checks (the sensor's bias
+    drifts), but a level that has crept beyond `threshold` from the one the estimate left (a load's torque that joint
+    friction lets go bit by bit) is judged against that one: a payload to estimate, or muted if it is none."""
+    from detector import Levels
+    q, start, step = np.zeros(7), np.array([0.2, 0.6, -0.4, -0.4, 0.05, -0.07, 0.0]), np.array([0, 1, 0, -1, 0, 0, 0]) * 0.04
+    for payload in (True, False):
+        lv, asked, verdicts, tested = Levels(tolerance=0.3, threshold=0.3), [], [], []
+        lv.explained.put(q, start)
+        for k in range(1, 12):                        # 0.057 Nm per check: each within threshold of the last level
+            level = start + k * step
+            verdicts.append(lv.judge(q, level, lambda d, gate: asked.append(d) or payload, (0.97, 0.9), far=2.0))
+            tested.append(len(asked))
+        crossed = next(k for k in range(1, 12) if np.linalg.norm(k * step) > 0.3)
+        assert all(v is None for v in verdicts[:crossed - 1]) and tested[crossed - 2] == 0   # followed, no test
+        np.testing.assert_allclose(asked[0], crossed * step)              # then the change since it was explained
+        if payload:
+            reference, kind = verdicts[crossed - 1]
+            assert kind == "level" and np.array_equal(reference, start)
+        else:
+            assert all(v is None for v in verdicts) and len(asked) == 1   # judged once, then muted
