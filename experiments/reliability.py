@@ -101,9 +101,11 @@ def score(rec, ep, cfg: ReliabilityConfig, robot) -> dict:
         tol = max(cfg.mass_tolerance[0] * m, cfg.mass_tolerance[1])
         ok = abs(m_hat - m) <= tol
         right = np.flatnonzero((rec.t >= t) & (rec.t < t_next) & (np.abs(rec.theta_hat[:, 0] - m) <= tol))
-        changes.append(dict(t=t, m=m, before=before, kind="removal" if m == 0 else "attachment",
-                            detected=bool(hits), settled=settled, compensated=bool(ok),
-                            m_hat=float(m_hat), latency_ms=(1e3 * (applied[0].applied - t) if applied else None),
+        m_hat_before = float(rec.theta_hat[rec.at(t) - 1, 0])      # compensated just before the change
+        changes.append(dict(t=t, m=m, before=before, m_hat_before=m_hat_before,
+                            kind="removal" if m == 0 else "attachment", detected=bool(hits), settled=settled,
+                            compensated=bool(ok), m_hat=float(m_hat),
+                            latency_ms=(1e3 * (applied[0].applied - t) if applied else None),
                             right_ms=(1e3 * (rec.t[right[0]] - t) if len(right) else None),
                             pushed=any(abs(p[0] - t) < 0.5 or p[0] <= t <= p[0] + p[2] for p in ep["pushes"])))
     err_mm = 1e3 * rec.ee_error
@@ -119,8 +121,8 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
     ch = [c for e in load_eps for c in e["changes"]]
     counted = [c for c in ch if c["settled"]]
 
-    def share(kind, key):
-        sel = [c for c in counted if c["kind"] == kind]
+    def share(kind, key, which=lambda c: True):
+        sel = [c for c in counted if c["kind"] == kind and which(c)]
         return {"count": len(sel), key: sum(c[key] for c in sel), "share": (sum(c[key] for c in sel) / len(sel)
                                                                              if sel else None)}
     pick = lambda key, push_ok=True: [c[key] for c in ch if c[key] is not None and c["kind"] == "attachment"
@@ -130,7 +132,7 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
     return {
         "attachments_detected": share("attachment", "detected"),
         "attachments_compensated": share("attachment", "compensated"),
-        "removals_detected": share("removal", "detected"),
+        "removals_detected": share("removal", "detected", lambda c: c["m_hat_before"] > cfg.mass_tolerance[1]),
         "removals_compensated": share("removal", "compensated"),
         "compensated_with_a_push_nearby": sum(c["compensated"] for c in counted if c["pushed"]),
         "with_a_push_nearby": sum(1 for c in counted if c["pushed"]),
@@ -182,7 +184,7 @@ def main(args):
     print(f"  attachments detected        {pct(s['attachments_detected'], 'detected')}")
     print(f"  attachments compensated     {pct(s['attachments_compensated'], 'compensated')}   (mass within 10 % or "
           f"50 g once the arm rests)")
-    print(f"  removals detected           {pct(s['removals_detected'], 'detected')}")
+    print(f"  removals detected           {pct(s['removals_detected'], 'detected')}   (of loads compensated then)")
     print(f"  removals compensated        {pct(s['removals_compensated'], 'compensated')}")
     print(f"  compensated with a push within 0.5 s   {s['compensated_with_a_push_nearby']}/{s['with_a_push_nearby']}")
     ms = lambda v: "-" if v is None else f"{v:.0f} ms"
