@@ -8,6 +8,7 @@ import sys
 import time
 
 import numpy as np
+from scipy.linalg import lapack
 
 import vi
 from detector import Detector, LevelMap, Levels, payload_like, safe_theta, steady_prefix
@@ -138,7 +139,10 @@ class RME:
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         self._r[i] = r if self.correction is None or np.isfinite(r).all() else tau - tau_mm
         if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
-            self._fq, self._P = q, np.linalg.solve(J @ J.T + s.detector.lam * np.eye(6), J)[:3]
+            A = J @ J.T                                                # (J J^T + lam I)^-1 J by Cholesky (LAPACK:
+            A.flat[::7] += s.detector.lam                              # a third of np.linalg.solve's time here)
+            _, PJ, bad = lapack.dposv(A, J)
+            self._fq, self._P = q, (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
         if self.detector.push(self._r[i], self._P @ self._r[i]) and self._k >= keep:
             if self._job is None and self._steps is None and (self.executor is None or self._pending is None):
                 self._on_detection()
@@ -169,7 +173,7 @@ class RME:
         if self._queued is not None and self._job is None and self._steps is None and self._pending is None:
             asked, self._queued = self._queued, None   # under the compensation just applied
             self._on_detection(asked)
-        self._last = np.clip(-tau_mm, -self._limit, self._limit)
+        self._last = np.minimum(np.maximum(-tau_mm, -self._limit), self._limit)
         return self._last
 
     def _apply(self, e, level, Y, J):
