@@ -225,7 +225,8 @@ def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
 
 def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
     """prepare(q, tau) puts the windows in shared memory ahead of submit; a submit with other arrays (equal or not)
-    sends its own, so a stale preparation never answers another job."""
+    sends its own, so a stale preparation never answers another job. Both wait for the next flush (busy, done,
+    result): franka.run_loop calls busy() after each write, off the state-to-command path."""
     from robot.worker import EstimatorSpec, ProcessWorker
     spec = EstimatorSpec(seed=3)
     (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8), [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
@@ -234,7 +235,9 @@ def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
     with ProcessWorker(spec) as worker:
         there = spec.build(executor=worker)
         worker.prepare(q_a, tau_a)
-        got_a = worker.submit(there._estimate, q_a, tau_a).result()[0]
+        job = worker.submit(there._estimate, q_a, tau_a)
+        assert worker._outbox and worker.busy() and not worker._outbox   # sent by the flush busy() makes
+        got_a = job.result()[0]
         worker.prepare(q_a, tau_a)                     # prepared, then another window submitted
         got_b = worker.submit(there._estimate, q_b, tau_b).result()[0]
     assert np.array_equal(got_a.mean, ref_a.mean) and np.array_equal(got_b.mean, ref_b.mean)

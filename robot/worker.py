@@ -108,7 +108,9 @@ class ProcessWorker:
     same sequence of windows. submit accepts only the bound method RME._estimate (its estimator is the worker's own).
     The constructor waits until the worker is ready (at most `start_timeout` s; ValueError if the spec cannot be
     built there, RuntimeError if it does not answer). shutdown() ends it (killed by its own pid if it hangs).
-    The arrays of a job and of its result travel through shared memory (_Boxes); the socket carries the rest."""
+    The arrays of a job and of its result travel through shared memory (_Boxes); the socket carries the rest.
+    prepare and submit only queue their copy and send; flush() does them, and busy(), done() and result() flush
+    first: a loop that calls busy() after writing its command keeps both off its state-to-command path."""
 
     def __init__(self, spec: EstimatorSpec, nice: int = 19, start_timeout: float = 60.0):
         if not isinstance(spec, EstimatorSpec):
@@ -124,7 +126,7 @@ class ProcessWorker:
         theirs.close()
         self._conn = Connection(ours.detach())
         self._arrived = _poller(self._conn)
-        self._sent, self._received, self._results, self._prepared = 0, 0, {}, None
+        self._sent, self._received, self._results, self._prepared, self._outbox = 0, 0, {}, None, []
         try:
             self._conn.send((spec, int(nice)))
             ready = self._conn.recv() if self._conn.poll(start_timeout) else "no answer"
@@ -141,30 +143,48 @@ class ProcessWorker:
 
     def prepare(self, *args):
         """Copy a job's arrays into shared memory ahead of submit(fn, *args) with the very same arrays (a loop can
-        spread the two over cycles); ignored while a job is out (submit then pickles)."""
+        spread the two over cycles); ignored while a job is out (submit then pickles). The copy is made by the next
+        flush (busy, done, result), like a submit's send."""
         if self._received == self._sent:
-            self._prepared = (args, _put(self._boxes.jobs, args))
+            self._prepared = [args, None]
+            self._outbox.append(("copy", self._prepared))
 
     def submit(self, fn, *args):
+        """Queue the job; it is sent by the next flush: busy() (which franka.run_loop calls after writing each
+        command, so the send is off the state-to-command path), or done() / result() of any job."""
         if getattr(fn, "__name__", None) != "_estimate":
             raise ValueError(f"fn: expected the bound method RME._estimate, found {fn!r}")
         shared = self._received == self._sent          # no job out: both boxes are free for this one
         ready, self._prepared = self._prepared, None
         same = ready is not None and len(ready[0]) == len(args) and all(a is b for a, b in zip(ready[0], args))
-        head = (ready[1] if same else _put(self._boxes.jobs, args)) if shared else None
-        try:                                           # b"W": the windows are in the box; else all pickled
-            self._conn.send_bytes(b"W" + head) if head is not None else self._conn.send(("estimate", args, shared))
-        except OSError:
-            raise RuntimeError(f"the estimate worker has ended (exit status {self._proc.poll()})") from None
+        self._outbox.append(("send", (args, shared, ready if same else None)))
         self._sent += 1
         return _Job(self, self._sent - 1)
+
+    def flush(self):
+        """Make the copies and send the jobs queued by prepare and submit, in order."""
+        while self._outbox:
+            kind, item = self._outbox.pop(0)
+            if kind == "copy":
+                item[1] = _put(self._boxes.jobs, item[0])
+                continue
+            args, shared, ready = item
+            head = (ready[1] if ready is not None and ready[1] is not None else _put(self._boxes.jobs, args)) \
+                if shared else None
+            try:                                       # b"W": the windows are in the box; else all pickled
+                self._conn.send_bytes(b"W" + head) if head is not None else self._conn.send(("estimate", args, shared))
+            except OSError:
+                raise RuntimeError(f"the estimate worker has ended (exit status {self._proc.poll()})") from None
 
     def busy(self) -> bool:
         self._collect(self._sent - 1, wait=False)
         return self._received < self._sent
 
     def _collect(self, index, wait):
-        """Receive the results that have arrived (all of them up to `index` if wait); True once `index`'s is in."""
+        """Send what is queued, then receive the results that have arrived (all of them up to `index` if wait);
+        True once `index`'s is in."""
+        if self._outbox:
+            self.flush()
         while self._received <= index:
             if not wait and not self._arrived():
                 return False
