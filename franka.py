@@ -108,7 +108,11 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     rec["t"], rec["theta_hat"], rec["callback_s"] = np.full(steps, np.nan), np.full((steps, 4), np.nan), np.zeros(steps)
     rec["in_flight"] = np.zeros(steps, dtype=bool)     # an estimate was running beside the loop at the cycle's end
     rec["read_s"], rec["after_s"] = np.zeros(steps), np.zeros(steps)   # waiting for the state; the work after the write
-    busy = getattr(getattr(estimator, "executor", None), "busy", lambda: False)
+    executor = getattr(estimator, "executor", None)
+    busy = getattr(executor, "busy", lambda: False)    # after each write: sends queued jobs, receives results
+    in_done = getattr(executor, "collect_in_done", None)
+    if in_done is not None:
+        executor.collect_in_done = False               # so the estimator's own poll (in update) only reads them
     shares_G = isinstance(controller, CPIC) and controller.robot is robot
     no_theta, zeros = np.zeros(4), np.zeros(n)
     k, t, missed, stopped, last_print = 0, 0.0, 0, "end", -np.inf
@@ -155,6 +159,8 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
         if collect:
             gc.enable()
         gc.unfreeze()
+        if in_done is not None:
+            executor.collect_in_done = in_done
     _stop(backend, safety, dry_run)
     log = {key: v[:k] for key, v in rec.items()}
     return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds), log

@@ -86,13 +86,15 @@ class ThreadWorker:
 
 
 class _Job:
-    """A job of a ProcessWorker: done() polls the worker's pipe (never waits), result() waits for it."""
+    """A job of a ProcessWorker: done() polls the worker's pipe (never waits; with the worker's `collect_in_done`
+    False, only reports what busy() has received), result() waits for it."""
 
     def __init__(self, worker, index):
         self._worker, self._index = worker, index
 
     def done(self) -> bool:
-        return self._worker._collect(self._index, wait=False)
+        w = self._worker
+        return w._collect(self._index, wait=False) if w.collect_in_done else w._received > self._index
 
     def result(self):
         self._worker._collect(self._index, wait=True)
@@ -127,6 +129,7 @@ class ProcessWorker:
         self._conn = Connection(ours.detach())
         self._arrived = _poller(self._conn)
         self._sent, self._received, self._results, self._prepared, self._outbox = 0, 0, {}, None, []
+        self.collect_in_done = True                    # False: a loop receives results in its busy() after its write
         try:
             self._conn.send((spec, int(nice)))
             ready = self._conn.recv() if self._conn.poll(start_timeout) else "no answer"
