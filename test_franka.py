@@ -231,7 +231,7 @@ def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
     spec = EstimatorSpec(seed=3)
     (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8), [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
     here = spec.build()
-    ref_a, ref_b = here._estimate(q_a, tau_a)[0], here._estimate(q_b, tau_b)[0]
+    ref_a, ref_b, ref_c = (here._estimate(q, tau)[0] for q, tau in ((q_a, tau_a), (q_b, tau_b), (q_a, tau_a)))
     with ProcessWorker(spec) as worker:
         there = spec.build(executor=worker)
         worker.prepare(q_a, tau_a)
@@ -240,6 +240,15 @@ def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
         got_a = job.result()[0]
         worker.prepare(q_a, tau_a)                     # prepared, then another window submitted
         got_b = worker.submit(there._estimate, q_b, tau_b).result()[0]
+        worker.collect_in_done = False                 # as in franka.run_loop: results come in through busy()
+        job = worker.submit(there._estimate, q_a, tau_a)
+        assert worker.busy()                           # sent
+        for _ in range(500):                           # at most 5 s for the answer to arrive
+            if worker._arrived():
+                break
+            time.sleep(0.01)
+        assert worker._arrived() and not job.done()    # arrived, not received: done() only reads
+        assert not worker.busy() and job.done() and np.array_equal(job.result()[0].mean, ref_c.mean)
     assert np.array_equal(got_a.mean, ref_a.mean) and np.array_equal(got_b.mean, ref_b.mean)
     assert abs(got_a.mean[0] - 1.0) < 0.1 and abs(got_b.mean[0] - 0.4) < 0.1
 
