@@ -4,9 +4,11 @@ paper's sign (Eq. 1) is minus libfranka's tau_ext_hat_filtered; the command sent
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -164,6 +166,23 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     _stop(backend, safety, dry_run)
     log = {key: v[:k] for key, v in rec.items()}
     return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds), log
+
+
+@contextlib.contextmanager
+def realtime_priority(priority: int = 80):
+    """Run the block with the calling thread at Linux SCHED_FIFO `priority` (as libfranka's RealtimeConfig.kEnforce
+    does on a robot), restoring its policy after; yields True if it could (CAP_SYS_NICE), else False and runs as is.
+    For a loop that blocks on each state (a robot, franky-sim); never around a loop that spins."""
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError):
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        os.sched_setscheduler(0, before[0], before[1])
 
 
 def _collect_garbage():

@@ -399,3 +399,11 @@ def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_h
     steps = np.diff(np.vstack([np.zeros((1, 7)), log["tau_cmd"]]), axis=0)
     assert np.abs(steps).max() <= 1.0 + 1e-9
     assert np.abs(log["q"] - log["q"][0]).max() < 0.1                # held (a 1 kg step sags it by a few cm)
+
+
+def test_realtime_priority_sets_sched_fifo_only_inside_and_restores_the_policy():
+    before = os.sched_getscheduler(0)
+    with franka.realtime_priority(10) as fifo:
+        inside = os.sched_getscheduler(0)
+    assert os.sched_getscheduler(0) == before
+    assert (inside == os.SCHED_FIFO) if fifo else (inside == before)   # without the permission: runs as it was

@@ -4,6 +4,7 @@ the next 1 ms tick (the physics only: the server's own gravity model, and so its
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import gc
 import os
@@ -88,11 +89,13 @@ class _LoadAt:
 
 
 def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0, 0.0, 0.05), seed: int = 4,
-               hostname: str = "127.0.0.1", start_timeout: float = 60.0):
+               hostname: str = "127.0.0.1", start_timeout: float = 60.0, realtime: bool = False):
     """franka.py's loop through pylibfranka (CPIC hold, RME with its estimates in a worker process) against this
     module's server, started frictionless on `hostname` in its own process and stopped by its own pid at the end;
-    the server adds `mass` at `com` to the hand when the loop reads tick `at`. Returns franka.run_loop's (summary,
-    log) and the estimator. Needs pylibfranka and franky-sim (requirements-robot.txt)."""
+    the server adds `mass` at `com` to the hand when the loop reads tick `at`. realtime: the loop's thread at
+    SCHED_FIFO when permitted (franka.realtime_priority; the server and the worker keep their own), as libfranka
+    runs it on a robot; summary["realtime"] says whether it was. Returns franka.run_loop's (summary, log) and the
+    estimator. Needs pylibfranka and franky-sim (requirements-robot.txt)."""
     import franka
     from dynamics import Robot
     from robot.worker import EstimatorSpec, ProcessWorker
@@ -116,8 +119,10 @@ def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0
                 raise RuntimeError("franky-sim did not start")
             backend = franka.FrankySimBackend(hostname, realtime=False)
             est = spec.build(executor=worker)
-            summary, log = franka.run_loop(_LoadAt(backend, server, at), robot,
-                                           franka.make_controller(robot, backend.initial.q, "hold"), est, seconds)
+            with franka.realtime_priority() if realtime else contextlib.nullcontext(False) as fifo:
+                summary, log = franka.run_loop(_LoadAt(backend, server, at), robot,
+                                               franka.make_controller(robot, backend.initial.q, "hold"), est, seconds)
+            summary["realtime"] = fifo
         finally:
             server.terminate()                                    # the server's own process
             try:
