@@ -1,5 +1,6 @@
 """Streaming RME with its estimates run as jobs beside the 1 kHz loop (RME(executor=...)): the same estimate as
 within the loop, applied once the job is done, update's own time free of the estimate, no change request lost."""
+import math
 import sys
 import time
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
@@ -55,7 +56,11 @@ def test_a_job_gives_the_same_estimate_a_few_samples_later_and_update_stays_fast
     np.testing.assert_allclose(e.mean, e_ref.mean, rtol=0, atol=1e-9)
     np.testing.assert_allclose(e.std, e_ref.std, rtol=0, atol=1e-9)
     assert e_ref.applied == e_ref.t                                  # within the loop: on the detection sample
-    assert 1 <= round((e.applied - e.t) * 1e3) <= 10, (e.t, e.applied, e.seconds)   # the job's ms, and a sample
+    # after the detection's sample: its 3 further steps (reference level, payload test, the job: a thread pool has no
+    # prepare), the job's wall time, then a sample each to receive, judge and apply it. The job's wall time is its own
+    # compute time (e.seconds) plus its waits for the interpreter lock and a CPU: up to as much again on a busy machine
+    delay = round((e.applied - e.t) * 1e3)
+    assert 6 <= delay <= 6 + 2 * math.ceil(1e3 * e.seconds) + 4, (e.t, e.applied, e.seconds)
     assert busy.sum() >= 1
     assert 1e3 * np.median(seconds[busy]) < 1.0, np.sort(seconds[busy])   # the estimate is not in it
     assert abs(est.theta[0] - THETA_A[0]) <= 0.08
