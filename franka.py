@@ -173,10 +173,12 @@ def realtime_priority(priority: int = 80):
     """Run the block with the calling thread at Linux SCHED_FIFO `priority` (as libfranka's RealtimeConfig.kEnforce
     does on a robot), restoring its policy after; yields True if it could (CAP_SYS_NICE), else False and runs as is.
     For a loop that blocks on each state (a robot, franky-sim); never around a loop that spins."""
-    try:
+    try:                                     # threads and processes started in the block do not inherit it
         before = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
     except (AttributeError, OSError):
+        before = None
+    if before is None:
         yield False
         return
     try:

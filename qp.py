@@ -48,7 +48,7 @@ def solve_qp(H, g, A, b, active=None, max_iterations=None):
     y, status, it, W, mult = _unit(VT, blas.dtrsv(L, g, 1, 0, 1), b, W, int(max_iterations), 1e-11)
     x = blas.dtrsv(L, y, 1, 0, 1, 1)                  # x = L^-T y
     status, r, r_min = _checked_answer(A, b, x, status)
-    return x, QPInfo(status, it, np.array(W, dtype=int), mult, (H, g, A, x.copy(), W, r, r_min))
+    return x, QPInfo(status, it, np.array(W, dtype=int), mult, (H.copy(), g.copy(), A.copy(), x.copy(), W, r, r_min))
 
 
 def _checked_problem(H, g, A, b):

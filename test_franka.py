@@ -229,7 +229,8 @@ def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
     result): franka.run_loop calls busy() after each write, off the state-to-command path."""
     from robot.worker import EstimatorSpec, ProcessWorker
     spec = EstimatorSpec(seed=3)
-    (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8), [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
+    (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8),
+                                          [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
     here = spec.build()
     ref_a, ref_b, ref_c = (here._estimate(q, tau)[0] for q, tau in ((q_a, tau_a), (q_b, tau_b), (q_a, tau_a)))
     with ProcessWorker(spec) as worker:
@@ -251,6 +252,27 @@ def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
         assert not worker.busy() and job.done() and np.array_equal(job.result()[0].mean, ref_c.mean)
     assert np.array_equal(got_a.mean, ref_a.mean) and np.array_equal(got_b.mean, ref_b.mean)
     assert abs(got_a.mean[0] - 1.0) < 0.1 and abs(got_b.mean[0] - 0.4) < 0.1
+
+
+def test_a_job_that_cannot_be_sent_fails_alone():
+    """A job whose windows cannot be sent (here: not picklable, queued behind another) raises at the flush that tries
+    it, and its result() raises at once instead of waiting for an answer that never comes; the job before it and
+    the job after it are answered as usual."""
+    import threading
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=3)
+    (q_a, tau_a), = _windows(ROBOT, np.random.default_rng(9), [(1.0, 0.0, 0.0, 0.05)])
+    with ProcessWorker(spec) as worker:
+        there = spec.build(executor=worker)
+        first = worker.submit(there._estimate, q_a, tau_a)
+        bad = worker.submit(there._estimate, q_a, [threading.Lock()])
+        with pytest.raises(RuntimeError, match="could not be sent"):
+            worker.busy()
+        t0 = time.perf_counter()
+        with pytest.raises(RuntimeError, match="could not be sent"):
+            bad.result()
+        assert time.perf_counter() - t0 < 5.0 and abs(first.result()[0].mean[0] - 1.0) < 0.1
+        assert abs(worker.submit(there._estimate, q_a, tau_a).result()[0].mean[0] - 1.0) < 0.1
 
 
 def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
@@ -406,4 +428,15 @@ def test_realtime_priority_sets_sched_fifo_only_inside_and_restores_the_policy()
     with franka.realtime_priority(10) as fifo:
         inside = os.sched_getscheduler(0)
     assert os.sched_getscheduler(0) == before
-    assert (inside == os.SCHED_FIFO) if fifo else (inside == before)   # without the permission: runs as it was
+    policy = inside & ~getattr(os, "SCHED_RESET_ON_FORK", 0)           # the flag that children do not inherit it
+    assert (policy == os.SCHED_FIFO) if fifo else (inside == before)   # without the permission: runs as it was
+
+
+def test_threads_started_at_realtime_priority_do_not_inherit_it():
+    import threading
+    seen = []
+    with franka.realtime_priority(10) as fifo:
+        t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+        t.start()
+        t.join(5.0)
+    assert seen and (seen[0] != os.SCHED_FIFO or not fifo)

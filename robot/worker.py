@@ -129,6 +129,7 @@ class ProcessWorker:
         self._conn = Connection(ours.detach())
         self._arrived = _poller(self._conn)
         self._sent, self._received, self._results, self._prepared, self._outbox = 0, 0, {}, None, []
+        self._flushed, self._unsent = 0, {}            # jobs sent so far; {index: error} of jobs that could not be
         self.collect_in_done = True                    # False: a loop receives results in its busy() after its write
         try:
             self._conn.send((spec, int(nice)))
@@ -165,19 +166,24 @@ class ProcessWorker:
         return _Job(self, self._sent - 1)
 
     def flush(self):
-        """Make the copies and send the jobs queued by prepare and submit, in order."""
+        """Make the copies and send the jobs queued by prepare and submit, in order. A job that cannot be sent gets
+        the error as its result (its result() raises it; later jobs are unaffected), and the error is raised here."""
         while self._outbox:
             kind, item = self._outbox.pop(0)
             if kind == "copy":
                 item[1] = _put(self._boxes.jobs, item[0])
                 continue
-            args, shared, ready = item
-            head = (ready[1] if ready is not None and ready[1] is not None else _put(self._boxes.jobs, args)) \
-                if shared else None
+            (args, shared, ready), index = item, self._flushed
+            self._flushed += 1
             try:                                       # b"W": the windows are in the box; else all pickled
+                head = (ready[1] if ready is not None and ready[1] is not None else _put(self._boxes.jobs, args)) \
+                    if shared else None
                 self._conn.send_bytes(b"W" + head) if head is not None else self._conn.send(("estimate", args, shared))
-            except OSError:
-                raise RuntimeError(f"the estimate worker has ended (exit status {self._proc.poll()})") from None
+            except Exception as err:
+                why = (f"the estimate worker has ended (exit status {self._proc.poll()})"
+                       if isinstance(err, OSError) else f"the job could not be sent: {type(err).__name__}: {err}")
+                self._unsent[index] = RuntimeError(why)
+                raise self._unsent[index] from None
 
     def busy(self) -> bool:
         self._collect(self._sent - 1, wait=False)
@@ -189,6 +195,10 @@ class ProcessWorker:
         if self._outbox:
             self.flush()
         while self._received <= index:
+            if self._received in self._unsent:        # never sent: nothing will arrive for it
+                self._results[self._received] = self._unsent.pop(self._received)
+                self._received += 1
+                continue
             if not wait and not self._arrived():
                 return False
             if wait and not self._conn.poll(1.0):
