@@ -53,11 +53,14 @@ class RME:
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
-    def _payload_like(self, q, d, gate, mass=None) -> bool:
-        """detector.payload_like for a residual change d (n,) at pose q, from the payload mass compensated (now)."""
-        _, R, J = self.robot.kinematics(q)
-        return payload_like(self.robot.payload_regressor_from(J, R), d, self.theta[0] if mass is None else mass, gate,
-                            J, 1.2 * self.settings.max_mass)
+    def _payload_like(self, q, d, gate, mass=None, YJ=None) -> bool:
+        """detector.payload_like for a residual change d (n,) at pose q, from the payload mass compensated (now);
+        YJ: the payload regressor and Jacobian at q when the caller has them (the current sample's, in update)."""
+        if YJ is None:
+            _, R, J = self.robot.kinematics(q)
+            YJ = self.robot.payload_regressor_from(J, R), J
+        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1],
+                            1.2 * self.settings.max_mass)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -166,7 +169,7 @@ class RME:
             elif self._k > self._refine["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = None                    # the arm never rested: the monitor checks it when it does
         elif s.monitor and idle and self._calm >= s.monitor_window and self._k % 10 == 0:
-            self._check_consistency()
+            self._check_consistency(Y, J)
         if self._pending is not None and self._k >= self._pending[0]:
             self._apply(*self._pending[1:], Y, J)
             tau_mm = Y @ self._phi
@@ -247,11 +250,12 @@ class RME:
         Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e, Y: None, level=r["known"])
 
-    def _check_consistency(self):
+    def _check_consistency(self, Y, J):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
         the level explained before at this pose. The very first level is estimated against no payload at all (RME
         assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
-        taken as explained, unless it is monitor_far from the nearest level known (detector.Levels.judge)."""
+        taken as explained, unless it is monitor_far from the nearest level known (detector.Levels.judge). Y, J: the
+        payload regressor and Jacobian of the current sample (update's), where a payload is tested."""
         s = self.settings
         last = (self._k - s.monitor_window + np.arange(s.monitor_window)) % len(self._r)   # no reorder, no correction
         level, recent = self._r[last].mean(axis=0), self._r[last[-(s.monitor_window // 3):]].mean(axis=0)
@@ -259,7 +263,7 @@ class RME:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(self._q[last[-1]], d, gate),
+        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(None, d, gate, YJ=(Y, J)),
                                  (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
