@@ -365,6 +365,17 @@ def payload_like(Y, d, mass, gate, J=None, max_total=np.inf, side=PAYLOAD_SIDE) 
     return bool(math.hypot(F[0], F[1]) <= side[0] + side[1] * math.sqrt(F @ F))
 
 
+def through_flange(J, d, radius, floor=0.01) -> bool:
+    """Whether a torque change d (n,) at a pose with the flange's world Jacobian J (6, n) adds a downward force whose
+    line passes within `radius` [m] of the flange: |M| <= floor [Nm] + radius |F| for the wrench J^T W = d. To the
+    joint torques a person pressing straight down on the hand and a load centred below the flange are the same.
+    An arm of fewer than 6 joints does not determine W: False."""
+    if J.shape[1] < 6:
+        return False                                            # fewer joints than wrench components: no telling
+    W = pseudo_wrench(J, d, 1e-9, check=False)
+    return bool(W[2] < 0 and math.sqrt(W[3:] @ W[3:]) <= floor + radius * math.sqrt(W[:3] @ W[:3]))
+
+
 def _least_squares(A, d):
     """x minimising |A x - d| for a tall A (m, k) through its normal equations with a ridge of 1e-10 of their trace
     (A's rank may fall short: a payload's rz at a static pose; the fit A x is what counts there)."""

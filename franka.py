@@ -25,6 +25,7 @@ __all__ = ["Q_START", "State", "paper_tau_ext", "SimBackend", "PylibfrankaBacken
            "Safety", "SafetyConfig", "make_controller", "run_loop", "summarize", "save_log", "main"]  # backends: robot/
 LIBS = ("pylibfranka", "panda-py")
 TASKS = ("hold", "limit-cycle")
+SIM_COM = (0.03, -0.02, 0.05)   # m, ee frame: the --sim payload, off the flange axis (a load on it waits: hold_axial)
 
 
 # --- safety ------------------------------------------------------------------------------------------------
@@ -243,7 +244,7 @@ def save_log(path, log, estimator=None):
 # --- command line ------------------------------------------------------------------------------------------------
 def make_backend(args, rng: np.random.Generator):
     if args.sim:
-        payload = [(args.seconds / 2, args.sim_payload, (0.0, 0.0, 0.05))] if args.sim_payload > 0 else []
+        payload = [(args.seconds / 2, args.sim_payload, SIM_COM)] if args.sim_payload > 0 else []
         return SimBackend(rng, payload=payload, paced=args.paced)
     if args.lib == "pylibfranka":
         return PylibfrankaBackend(args.robot_ip, realtime=not args.no_realtime, control=not args.dry_run)
@@ -260,7 +261,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
     ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
-    ap.add_argument("--sim-payload", type=float, default=0.0, help="kg added at half time with --sim")
+    ap.add_argument("--sim-payload", type=float, default=0.0, help="kg added at half time with --sim (CoM: SIM_COM)")
     ap.add_argument("--stiffness-scale", type=float, default=1.0, help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
     ap.add_argument("--seed", type=int, default=0, help="the --sim plant's noise")

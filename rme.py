@@ -11,7 +11,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 import vi
-from detector import Detector, LevelMap, Levels, payload_like, safe_theta, steady_prefix
+from detector import Detector, LevelMap, Levels, payload_like, safe_theta, steady_prefix, through_flange
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings
@@ -42,6 +42,8 @@ class RME:
         self._fq, self._P = np.full(n, np.inf), None   # the pose (1e-3 rad) of the pseudo-force map P (3, n)
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
         self.changes_not_payload = 0                   # detections no payload explains (not estimated)
+        self.changes_held = 0                          # detections held back as a possible push (see hold_axial)
+        self._held = None                              # (q, level, since): that change, seen since sample `since`
         self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
@@ -219,21 +221,32 @@ class RME:
         Q, TAU, Rs = self._buffer()
         q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
         pending = self._refine             # before the arm rested after an accepted change: refer to before it
-        if self._lv.undone(Q[-1], Rs[-s.window:].mean(axis=0)):
+        pending = None if pending is None or pending.get("held") else pending
+        level = Rs[-s.window:].mean(axis=0)
+        if self._lv.undone(Q[-1], level):
+            self._held, self._refine = None, pending
             return                         # back to the level before a change that was no payload: its release
         yield
         bias = pending["bias"] if pending is not None else self._lv.bias(   # the level before, as long as it holds
             Rs[:steady_prefix(Rs, s.reference, len(Rs) - s.window)], q_ref)
         yield
-        if not self._payload_like(Q[-1], Rs[-s.window:].mean(axis=0) - bias, s.min_explained, before[0]):
+        _, R, J = self.robot.kinematics(Q[-1])
+        if not self._payload_like(Q[-1], level - bias, s.min_explained, before[0], (self.robot.payload_regressor_from(
+                J, R), J)):
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
             return                         # a push, a bias step
+        known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
+        still = int(np.abs(self._dq).max() < s.monitor_speed)         # over the buffer: no sag, no push moved it
+        if self._held_back(Q[-1], level, level - bias, J, asked - s.window, still):
+            self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
+            self._refine = dict(bias=bias, known=known, before=before, held=True,   # judged again at rest
+                                deadline=self._k + int(s.refine_within * s.rate))
+            return
         yield
         Qw, Tw, prepare = Q[-s.window:], TAU[-s.window:] - bias, getattr(self.executor, "prepare", None)
         if prepare is not None:            # the window into the worker's shared memory now, the job on the next sample
             prepare(Qw, Tw)
             yield
-        known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
         def then(e, Y):
             self._lv.rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
@@ -244,10 +257,20 @@ class RME:
 
     def _on_rest(self):
         """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
-        friction no longer holds part of the load, and the arm is back near the pose it had before the change."""
+        friction no longer holds part of the load, and the arm is back near the pose it had before the change. A change
+        held at the detection (see _held_back) is judged again first: gone (a push released), held, or estimated."""
         s, r = self.settings, self._refine
+        Q, TAU, Rs = self._buffer()
+        if r.get("held"):
+            level = Rs[-s.window:].mean(axis=0)
+            if any(np.linalg.norm(level - b) <= s.monitor_threshold for b in (r["bias"], self._lv.explained.at(Q[-1]))
+                   if b is not None):                                  # back to the level before it, or to one the
+                self._refine = self._held = None                       #   compensation explains here: released
+                return
+            if self._k % 10 or self._held_back(Q[-1], level, level - r["bias"], self.robot.jacobian(Q[-1]),
+                                               self._k - s.window, 1):
+                return                                                 # (the monitor stays off meanwhile)
         self._refine = None
-        Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e, Y: None, level=r["known"])
 
     def _check_consistency(self, Y, J):
@@ -271,7 +294,11 @@ class RME:
             self._change(Q[-s.window:], TAU[-s.window:], self._evidence[0][2], self.theta, "accumulated",
                          self._leaves(q, level), same, evidence=self._evidence)   # referred like the first window
             self._calm = 0
-        if verdict is None or verdict == "new":
+        if verdict is None:
+            self._held = None
+        held, before = self._held is not None, self.theta.copy()    # a change held (at the detection) let go now:
+        if verdict is None or verdict == "new" or self._held_back(q, level, level - verdict[0], J,   # estimated
+                                                                  self._k - s.monitor_window, 1):   # again at rest
             return
         (reference, kind), first = verdict, verdict[1] == "first"
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
@@ -292,9 +319,25 @@ class RME:
                 self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
             elif not e.accepted:
                 self._lv.muted.put(q, level)
+            if e.accepted and held and s.refine:
+                self._refine = dict(bias=reference, known=None if kind != "level" else (q, reference), before=before,
+                                    deadline=self._k + int(s.refine_within * s.rate))
         self._change(Q[-s.window:], TAU[-s.window:], reference, self.theta, "monitor", then, accept,
                      level=None if kind != "level" else (q, reference))
         self._calm = 0
+
+    def _held_back(self, q, level, d, J, since, rest) -> bool:
+        """Whether a payload-like change d (n,) that leaves the residual `level` at pose q waits: it adds a downward
+        force through the flange (detector.through_flange; J the flange's Jacobian at q) and has lasted less than
+        hold_axial, counted from `since` (the sample it began by) when nothing is held yet. What is held is cleared
+        by a change that is not such a force, by the release of the change (detector) or a level explained (monitor).
+        rest: 0 while the arm moves (the detection, after a load's sag), 1 at rest; picks settings.axial_radius."""
+        s, h = self.settings, self._held
+        if s.hold_axial <= 0 or not through_flange(J, d, s.axial_radius[rest]):
+            self._held = None
+            return False
+        self._held = h = (q, level, since if h is None else h[2])    # held since first seen, until something clears it
+        return self._k - h[2] < s.hold_axial * s.rate
 
     def _leaves(self, q, level):
         """then(e, Y) for an estimate at pose q, where the residual level is `level` now: once accepted, the level the new

@@ -44,6 +44,14 @@ class RMESettings:
     pose_tolerance: float = 0.3    # rad on every joint: within this of the pose where a level was explained, that level
                                    #   still holds (the realistic sensor's bias varies over radians; a 3 kg load
                                    #   or a 60 N push moves the compliant arm by about 0.1-0.3 rad)
+    hold_axial: float = 2.5        # s (ours): a change that adds a downward force through the flange's vertical (a
+                                   #   person pressing on the hand, or a load centred below the flange: the torques
+                                   #   cannot tell them apart) is estimated only once it has lasted this long (a push
+                                   #   has ended by then; 0: at once). A load off that line is estimated at once
+    axial_radius: tuple = (0.04, 0.012)    # m: "through the flange": the force's line within this of it, at the
+                                   #   detection (the arm still moves: friction bends a push's wrench by 1-2.6 cm on the
+                                   #   realistic plant; such a change waits for the monitor) and at rest (a push leaves
+                                   #   1-7 mm there; a load's CoM 2 cm off the line reads 2-2.6 cm)
     max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
     accumulate: bool = True        # ours: at rest at a new orientation, the same payload, combine the windows seen
     accumulate_angle: float = 0.2  # rad: gravity turned this far in the ee frame since every window kept (rz shows)
@@ -66,6 +74,9 @@ class RMESettings:
                    f"{self.window}..{keep} samples"),
                   ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
                   ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s"),
+                  ("hold_axial", self.hold_axial, self.hold_axial >= 0, "a time >= 0 s"),
+                  ("axial_radius", self.axial_radius, len(self.axial_radius) == 2 and min(self.axial_radius) >= 0,
+                   "(at the detection, at rest) distances >= 0 m"),
                   ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)")]
         for name, value, ok, want in checks:
             if not ok or (isinstance(value, float) and np.isnan(value)):

@@ -254,3 +254,33 @@ def test_an_explained_level_follows_a_slow_drift_only_as_far_as_the_threshold_fr
             assert kind == "level" and np.array_equal(reference, start)
         else:
             assert all(v is None for v in verdicts) and len(asked) == 1   # judged once, then muted
+
+
+@pytest.mark.parametrize("off, force, expected", [
+    ((0.005, 0.0), (0.0, 0.0, -20.0), True),      # 5 mm off the flange's vertical, pressing down
+    ((0.0, 0.0), (0.0, 0.0, -3.0), True),
+    ((0.02, 0.01), (0.0, 0.0, -20.0), False),     # 2.2 cm off: a load's CoM, not the flange
+    ((0.0, 0.0), (0.0, 0.0, 20.0), False),        # lifting adds no weight
+])
+def test_through_flange_matches_a_point_force_torqued_by_mujoco(off, force, expected):
+    """The joint torques of a world force at a point (MuJoCo's own point Jacobian, mj_jac) against the wrench test:
+    a downward force whose line passes within axial_radius of the flange, at a random pose."""
+    import mujoco
+
+    from detector import through_flange
+    from dynamics import Robot
+    from sim import Plant, PlantConfig
+    rng = np.random.default_rng(3)
+    robot, plant = Robot.panda(), Plant(PlantConfig.ideal())
+    q = np.array([0.2, -0.5, 0.1, -2.0, 0.1, 1.6, 0.7]) + 0.1 * rng.normal(size=N7)
+    d = mujoco.MjData(plant.model)
+    d.qpos[:] = q
+    mujoco.mj_kinematics(plant.model, d)
+    mujoco.mj_comPos(plant.model, d)
+    site = mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_SITE, "flange")
+    point = d.site_xpos[site] + np.array([*off, 0.3 * rng.uniform()])   # anywhere along that vertical, or off it
+    body = mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_BODY, "link7")
+    Jp = np.zeros((3, N7))
+    mujoco.mj_jac(plant.model, d, Jp, None, point, body)
+    _, _, J = robot.kinematics(q)
+    assert through_flange(J, Jp.T @ np.asarray(force), radius=0.012) is expected

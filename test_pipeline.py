@@ -100,7 +100,7 @@ def test_rme_returns_the_arm_to_its_pose_and_without_it_the_arm_sags():
 def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_says(monkeypatch):
     import vi
     est = RME(weights=None, settings=RMESettings(asynchronous=False, min_explained=-np.inf, max_com=10.0,
-                                                 monitor=False))     # no plausibility gates: the detector only
+                                                 monitor=False, hold_axial=0.0))   # no gates: the detector only
     outputs = iter([np.full(4, np.nan), np.array([3.5, 5.0, -5.0, 5.0])])   # the gate allows 1.2 max_mass
 
     def broken_fit(*args, **kwargs):

@@ -213,3 +213,29 @@ def test_a_removal_after_a_misread_load_is_healed_once_the_arm_rests():
     ep = run_episode(6, ReliabilityConfig())
     assert within(ep["changes"][-1]["m_hat"], 0.0), ep["changes"]
     assert ep["final_error_mm"] < 10.0
+
+
+def test_a_downward_push_through_the_flange_is_held_and_never_applied():
+    """Pressing straight down on the hand for 1.8 s: to the joint torques a load centred below the flange. RME holds
+    such a change for hold_axial (2.5 s) and the push ends first: nothing is estimated or applied. Without the hold
+    the same push is compensated as a load while it lasts (the test's control)."""
+    from dataclasses import replace
+    push = [Push(1.0, (0.0, 0.0, -20.0), 1.8, body="link7", offset=(0.0, 0.0, 0.107))]
+    rec, est = hold(5, 5.0, push)
+    assert not est.history and est.changes_held >= 1, [(e.t, e.kind, e.mean.round(2)) for e in est.history]
+    assert np.abs(rec.theta_hat[:, 0]).max() == 0.0
+    rec_off, _ = hold(5, 5.0, push, settings=replace(SYNC, hold_axial=0.0))
+    assert rec_off.theta_hat[:, 0].max() > 1.5                       # 20 N read as about 2 kg
+
+
+def test_a_load_centred_below_the_flange_is_compensated_once_it_has_lasted():
+    """The other side of that hold: 1 kg hanging 10 cm straight below the flange at the ready pose (ee z down) waits
+    hold_axial, then the monitor compensates it. A load 5 cm off that line is compensated at the detection."""
+    rec, est = hold(5, 6.0, [PayloadChange(1.0, 1.0, (0.0, 0.0, 0.1))])
+    assert rec.theta_hat[rec.at(1.0 + 2.4), 0] == 0.0                # held while a push could still end
+    applied = [e for e in est.history if e.accepted]
+    assert applied and 1.0 + 2.5 <= applied[0].t < 1.0 + 3.5, [(e.t, e.kind, e.accepted) for e in est.history]
+    assert within(rec.theta_hat[-1, 0], 1.0) and np.linalg.norm(rec.p[-1] - rec.target[-1]) < 0.01
+    rec, est = hold(5, 3.0, [PayloadChange(1.0, 1.0, (0.05, 0.0, 0.1))])
+    assert est.changes_held == 0 and est.history[0].accepted and est.history[0].t < 1.0 + 0.4
+    assert within(rec.theta_hat[-1, 0], 1.0)

@@ -84,7 +84,7 @@ def run_episode(seed: int, cfg: ReliabilityConfig, loads: bool = True, rme_setti
     events = [PayloadChange(t, m, r) for t, m, r in ep["changes"]]
     events += [Push(t, f, d, body="link7", offset=(0.0, 0.0, 0.107)) for t, f, d in ep["pushes"]]   # at the flange
     rec = run(plant, CPIC(robot, Attractor(*robot.ee_pose(q0))), cfg.seconds, estimator=est, events=events, q0=q0)
-    return dict(score(rec, ep, cfg, robot), not_payload=est.changes_not_payload)
+    return dict(score(rec, ep, cfg, robot), not_payload=est.changes_not_payload, held=est.changes_held)
 
 
 def score(rec, ep, cfg: ReliabilityConfig, robot) -> dict:
@@ -147,6 +147,8 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
         "push_episodes_detected": sum(e["detections"] > 0 for e in push_eps),
         "push_episodes_applied": sum(e["applied"] > 0 for e in push_eps),
         "push_episodes_not_payload": sum(e.get("not_payload", 0) > 0 for e in push_eps),
+        "push_episodes_held": sum(e.get("held", 0) > 0 for e in push_eps),
+        "load_episodes_held": sum(e.get("held", 0) > 0 for e in load_eps),
         "nan": sum(e["nan"] for e in load_eps + push_eps),
         "torque_over_limit": sum(e["over_limit"] for e in load_eps + push_eps),
         "joint_limit_violations": sum(e["joint_limit"] for e in load_eps + push_eps),
@@ -196,7 +198,9 @@ def main(args):
           f"{s['final_error_below_target']}/{s['load_episodes']} episodes")
     print(f"  pushes only: estimated in {s['push_episodes_detected']}/{s['push_episodes']} episodes, applied in "
           f"{s['push_episodes_applied']}/{s['push_episodes']}; the detector fired on a change no payload explains "
-          f"(not estimated) in {s['push_episodes_not_payload']}")
+          f"(not estimated) in {s['push_episodes_not_payload']}; a press through the flange held (never estimated) in "
+          f"{s['push_episodes_held']}")
+    print(f"  load episodes with a change held as a possible press through the flange: {s['load_episodes_held']}")
     print(f"  safety: NaN {s['nan']}, torque over the limits {s['torque_over_limit']}, joint limits "
           f"{s['joint_limit_violations']}")
     lc = res["limit_cycle"]

@@ -244,7 +244,7 @@ def worker_benchmark(seconds: float = 8.0, seed: int = 0, workers=("thread", "pr
     max), missed cycles (none on the plant: it waits), the estimates made and the mass compensated at the end."""
     import franka
     from robot.worker import EstimatorSpec, make_worker
-    loads = [(t, 1.0 if t % 4 == 1 else 0.5 if t % 4 == 3 else 0.0, (0.0, 0.0, 0.05)) for t in range(1, int(seconds))]
+    loads = [(t, 1.0 if t % 4 == 1 else 0.5 if t % 4 == 3 else 0.0, (0.03, -0.02, 0.05)) for t in range(1, int(seconds))]
     out = {}
     for kind in workers:
         spec = EstimatorSpec(seed=seed + 1)

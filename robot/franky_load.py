@@ -1,5 +1,5 @@
 """franky-sim (a simulated Franka FCI server on MuJoCo) with a load that can be added to the simulated hand while a
-client runs: `python -m robot.franky_load --hostname 127.0.0.1 --mass 1 --com 0 0 0.05`; SIGUSR1 adds the load at
+client runs: `python -m robot.franky_load --hostname 127.0.0.1 --mass 1 --com 0.03 -0.02 0.05`; SIGUSR1 adds the load at
 the next 1 ms tick (the physics only: the server's own gravity model, and so its `m_load`, stays unchanged)."""
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ class _LoadAt:
         self.inner.stop()
 
 
-def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0, 0.0, 0.05), seed: int = 4,
+def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.03, -0.02, 0.05), seed: int = 4,
                hostname: str = "127.0.0.1", start_timeout: float = 60.0, realtime: bool = False):
     """franka.py's loop through pylibfranka (CPIC hold, RME with its estimates in a worker process) against this
     module's server, started frictionless on `hostname` in its own process and stopped by its own pid at the end;
@@ -137,7 +137,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hostname", default="127.0.0.1")
     ap.add_argument("--mass", type=float, default=1.0, help="kg added to the hand on SIGUSR1")
-    ap.add_argument("--com", type=float, nargs=3, default=(0.0, 0.0, 0.05), help="m, in the hand frame")
+    ap.add_argument("--com", type=float, nargs=3, default=(0.03, -0.02, 0.05), help="m, in the hand frame")
     ap.add_argument("--frictionless", action="store_true",
                     help="no joint friction (franky-sim's joints have frictionloss 1.1 Nm, which at rest holds up "
                          "to that much of a load's torque: about 0.2 kg of 1 kg at the ready pose)")
