@@ -28,8 +28,8 @@ class RME:
                  rng: np.random.Generator | None = None, correction=None, executor=None):
         self.robot = Robot.panda() if robot is None else robot
         self.settings, self.correction, self.executor = settings, correction, executor
-        self._job, self._queued = None, None           # (future, request, sample, received) in flight; a request
-        self._steps = None                             # (generator, sample): a detection formed a step per sample
+        self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
+                                                       #   a request; (generator, sample): a detection's steps
         self.rng = np.random.default_rng(0) if rng is None else rng
         self.net = MismatchNet.load(weights) if settings.use_network and weights is not None else None  # or ValueError
         if not isinstance(settings, RMESettings):
@@ -41,28 +41,22 @@ class RME:
         self._k = 0                                    # samples seen
         self._fq, self._P = np.full(n, np.inf), None   # the pose (1e-3 rad) of the pseudo-force map P (3, n)
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
-        self.changes_not_payload = 0                   # detections no payload explains (not estimated)
-        self.changes_held = 0                          # detections held back as a possible push (see hold_axial)
-        self._held = None                              # (q, level, since): that change, seen since sample `since`
+        self.changes_not_payload, self.changes_held = 0, 0   # detections no payload explains (not estimated); held
+        self._held = None                              # the sample since which a change has been held (_held_back)
         self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
-        self.theta = np.zeros(4)                       # the estimate being compensated
-        self._phi = np.zeros(4)                        # its phi = (m, m r), kept with it for the 1 kHz loop
+        self.theta, self._phi = np.zeros(4), np.zeros(4)   # the estimate compensated; its phi = (m, m r) (1 kHz loop)
         self._pending = None                           # (sample index when it applies, Estimate)
-        self._refine, self._still = None, 0            # a pending estimate at rest; samples the arm has been still
-        self._calm = 0                                 # samples the arm has been slower than monitor_speed
+        self._refine, self._still, self._calm = None, 0, 0   # a pending estimate at rest; samples the arm has been
+                                                       #   still, and slower than monitor_speed
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
-    def _payload_like(self, q, d, gate, mass=None, YJ=None) -> bool:
-        """detector.payload_like for a residual change d (n,) at pose q, from the payload mass compensated (now);
-        YJ: the payload regressor and Jacobian at q when the caller has them (the current sample's, in update)."""
-        if YJ is None:
-            _, R, J = self.robot.kinematics(q)
-            YJ = self.robot.payload_regressor_from(J, R), J
-        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1],
-                            1.2 * self.settings.max_mass)
+    def _payload_like(self, d, gate, YJ, mass=None) -> bool:
+        """detector.payload_like for a residual change d (n,) at a pose with payload regressor and Jacobian YJ, from
+        the payload mass compensated (now)."""
+        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1], 1.2 * self.settings.max_mass)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -124,15 +118,13 @@ class RME:
         the estimate leaves) and, as a backstop, the consistency monitor: once the arm is calm with a steady residual
         level, that level must stay within monitor_threshold of the level explained there, or RME estimates again."""
         n, keep, s = self.robot.n, self.settings.detector.window, self.settings
-        q, _ = as_states("q", q, n, allow_window=False)
-        dq, _ = as_states("dq", dq, n, allow_window=False)
+        q, dq = as_states("q", q, n, allow_window=False)[0][0], as_states("dq", dq, n, allow_window=False)[0][0]
         tau = np.asarray(tau_ext, dtype=float)
         if tau.shape != (n,):
             raise ValueError(f"tau_ext: expected shape ({n},), found {tau.shape}")
         if not np.all(np.isfinite(tau)) or np.abs(tau).max() > s.max_abs_torque:
             self.dropped += 1                          # a sensor fault, not a load: never reaches the estimator
             return self._last
-        q, dq = q[0], dq[0]
         i = self._k % keep
         self._q[i], self._dq[i], self._tau[i] = q, dq, tau
         self._k += 1
@@ -156,8 +148,7 @@ class RME:
         if self._steps is not None and self._steps[1] < self._k and next(self._steps[0], True):
             self._steps = None                         # with an executor: one step per sample, from the next one
         speed = np.abs(dq).max()
-        self._still = self._still + 1 if speed < s.rest_speed else 0
-        self._calm = self._calm + 1 if speed < s.monitor_speed else 0
+        self._still, self._calm = (self._still + 1) * (speed < s.rest_speed), (self._calm + 1) * (speed < s.monitor_speed)
         if self._job is not None and self._job[2] < self._k:           # polled from the next sample on
             if self._job[3]:                           # received on the sample before: judged now
                 (future, request, *_), self._job = self._job, None
@@ -166,10 +157,12 @@ class RME:
                 self._job = (*self._job[:3], True)
         idle = self._pending is None and self._job is None and self._queued is None and self._steps is None
         if self._refine is not None and idle:
-            if self._still >= s.window or (self._calm >= s.monitor_window and self._k > self._refine["deadline"] - s.rate / 2):
+            r = self._refine                           # (a held change is estimated once it has lasted, moving or not)
+            if self._still >= s.window or (self._calm >= s.monitor_window and self._k > r["deadline"] - s.rate / 2) \
+                    or (r.get("held") and self._k - r["since"] >= s.hold_axial * s.rate):
                 self._on_rest()
-            elif self._k > self._refine["deadline"] + 2 * s.refine_within * s.rate:
-                self._refine = None                    # the arm never rested: the monitor checks it when it does
+            elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
+                self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
         elif s.monitor and idle and self._calm >= s.monitor_window and self._k % 10 == 0:
             self._check_consistency(Y, J)
         if self._pending is not None and self._k >= self._pending[0]:
@@ -193,7 +186,7 @@ class RME:
         self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
         self._r -= d                                                   # the arm is near this pose over the buffer
         e.applied = self._k / self.settings.rate
-        self._pending, self._still, self._calm = None, 0, 0   # the arm answers the new compensation: wait for rest
+        self._pending, self._still, self._calm, self._held = None, 0, 0, None   # the arm answers: wait for rest
 
     def _buffer(self):
         """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""
@@ -212,19 +205,17 @@ class RME:
         if self.executor is not None:              # the first step (the window) now, the next ones from the next sample
             self._steps = (steps, self._k) if next(steps, True) is None else None
         else:
-            for _ in steps:
-                pass
+            list(steps)                            # all at once
 
     def _detection(self, asked):
         """_on_detection's steps (a generator: each yield hands the rest to the next sample)."""
         s = self.settings
         Q, TAU, Rs = self._buffer()
         q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
-        pending = self._refine             # before the arm rested after an accepted change: refer to before it
-        pending = None if pending is None or pending.get("held") else pending
-        level = Rs[-s.window:].mean(axis=0)
+        held, pending = (self._refine, None) if (self._refine or {}).get("held") else (None, self._refine)   # a refine:
+        level = Rs[-s.window:].mean(axis=0)   # refer to before its change (no rest yet)
         if self._lv.undone(Q[-1], level):
-            self._held, self._refine = None, pending
+            self._held, self._refine = None, pending if held is None else self._resumed(held)
             return                         # back to the level before a change that was no payload: its release
         yield                              # (with an executor each step costs 0.05-0.1 ms in a loop's cold caches)
         steady = steady_prefix(Rs, s.reference, len(Rs) - s.window) if pending is None else 0
@@ -232,16 +223,16 @@ class RME:
         bias = pending["bias"] if pending is not None else self._lv.bias(Rs[:steady], q_ref)   # the level before,
         yield                                                                                   # as long as it holds
         _, R, J = self.robot.kinematics(Q[-1])
-        if not self._payload_like(Q[-1], level - bias, s.min_explained, before[0], (self.robot.payload_regressor_from(
-                J, R), J)):
+        if not self._payload_like(level - bias, s.min_explained, (self.robot.payload_regressor_from(J, R), J), before[0]):
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
             return                         # a push, a bias step
         yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        still = int(np.abs(self._dq).max() < s.monitor_speed)         # over the buffer: no sag, no push moved it
-        if self._held_back(Q[-1], level, level - bias, J, asked - s.window, still):
+        if self._held_back(level - bias, J, asked - s.window, int(np.abs(self._dq).max() < s.monitor_speed)):   # still?
             self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
-            self._refine = dict(bias=bias, known=known, before=before, held=True,   # judged again at rest
+            self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
+                                resume=pending if held is None else held["resume"],                     # again at
+                                window=(Q[-s.window:], TAU[-s.window:]), level=level,                   # rest
                                 deadline=self._k + int(s.refine_within * s.rate))
             return
         yield
@@ -258,22 +249,36 @@ class RME:
         self._change(Qw, TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
 
     def _on_rest(self):
-        """Once the arm has been still for a whole window after a detection, estimate again from that window: joint
-        friction no longer holds part of the load, and the arm is back near the pose it had before the change. A change
-        held at the detection (see _held_back) is judged again first: gone (a push released), held, or estimated."""
-        s, r = self.settings, self._refine
-        Q, TAU, Rs = self._buffer()
-        if r.get("held"):
-            level = Rs[-s.window:].mean(axis=0)
-            if any(np.linalg.norm(level - b) <= s.monitor_threshold for b in (r["bias"], self._lv.explained.at(Q[-1]))
-                   if b is not None):                                  # back to the level before it, or to one the
-                self._refine = self._held = None                       #   compensation explains here: released
+        """Once the arm is still for a window after a detection, estimate again from that window (friction no longer
+        holds part of the load). A change held at the detection (_held_back): released, still held, or estimated."""
+        s, r, keep = self.settings, self._refine, len(self._r)
+        rest = self._still >= s.window or self._calm >= s.monitor_window
+        if r.get("held"):                                              # every 10th sample, from the rings
+            if self._k % 10:
                 return
-            if self._k % 10 or self._held_back(Q[-1], level, level - r["bias"], self.robot.jacobian(Q[-1]),
-                                               self._k - s.window, 1):
+            q, level = self._q[(self._k - 1) % keep], self._r[(self._k - s.window + np.arange(s.window)) % keep].mean(0)
+            gap = lambda b: np.linalg.norm(level - b)
+            if any(gap(b) <= s.monitor_threshold for b in (r["bias"], self._lv.explained.at(q)) if b is not None):
+                self._refine, self._held = self._resumed(r), None      # back to the level before it, or to one the
+                return                                                 #   compensation explains here: released
+            if gap(r["bias"]) < gap(r["level"]):                       # nearer the level before: the press has gone,
+                r = self._refine = dict(r, held=False)                 #   what is left is estimated at rest
+                if not rest:
+                    return
+            elif self._k - r["since"] < s.hold_axial * s.rate and through_flange(self.robot.jacobian(q), level - r[
+                    "bias"], s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
-        self._refine = None
+        self._refine, self._held = None, None
+        if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
+            again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(   # window, then again at
+                r, held=False, deadline=self._k + int(s.refine_within * s.rate)))           # rest
+            return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"])
+        Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e, Y: None, level=r["known"])
+
+    def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
+        r, s = held["resume"], self.settings
+        return None if r is None else dict(r, deadline=self._k + int(s.refine_within * s.rate))
 
     def _check_consistency(self, Y, J):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
@@ -288,7 +293,7 @@ class RME:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(None, d, gate, YJ=(Y, J)),
+        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(d, gate, (Y, J)),
                                  (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
@@ -298,9 +303,9 @@ class RME:
             self._calm = 0
         if verdict is None:
             self._held = None
-        held, before = self._held is not None, self.theta.copy()    # a change held (at the detection) let go now:
-        if verdict is None or verdict == "new" or self._held_back(q, level, level - verdict[0], J,   # estimated
-                                                                  self._k - s.monitor_window, 1):   # again at rest
+        held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
+        if verdict is None or verdict == "new" or self._held_back(level - verdict[0], J, self._k - s.monitor_window,
+                                                                  1):   # again at rest (see then)
             return
         (reference, kind), first = verdict, verdict[1] == "first"
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
@@ -328,22 +333,19 @@ class RME:
                      level=None if kind != "level" else (q, reference))
         self._calm = 0
 
-    def _held_back(self, q, level, d, J, since, rest) -> bool:
-        """Whether a payload-like change d (n,) that leaves the residual `level` at pose q waits: it adds a downward
-        force through the flange (detector.through_flange; J the flange's Jacobian at q) and has lasted less than
-        hold_axial, counted from `since` (the sample it began by) when nothing is held yet. What is held is cleared
-        by a change that is not such a force, by the release of the change (detector) or a level explained (monitor).
-        rest: 0 while the arm moves (the detection, after a load's sag), 1 at rest; picks settings.axial_radius."""
-        s, h = self.settings, self._held
+    def _held_back(self, d, J, since, rest) -> bool:
+        """Whether a payload-like change d (n,) waits: it adds a downward force through the flange (through_flange, J
+        the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less than hold_axial
+        since self._held (set to `since`, the sample it began by, if None; cleared when such a change goes)."""
+        s = self.settings
         if s.hold_axial <= 0 or not through_flange(J, d, s.axial_radius[rest]):
             self._held = None
             return False
-        self._held = h = (q, level, since if h is None else h[2])    # held since first seen, until something clears it
-        return self._k - h[2] < s.hold_axial * s.rate
+        self._held = since if self._held is None else self._held
+        return self._k - self._held < s.hold_axial * s.rate
 
     def _leaves(self, q, level):
-        """then(e, Y) for an estimate at pose q, where the residual level is `level` now: once accepted, the level the new
-        compensation leaves there is the explained one."""
+        """then(e, Y) for an estimate at pose q, residual level `level` now: once accepted, what it leaves is explained."""
         Yq, phi = self.robot.payload_regressor(q), self._phi.copy()
         return lambda e, Y=None: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
             e.mean, self.theta, self.settings.max_mass)) - phi))
@@ -351,8 +353,8 @@ class RME:
     def _turned(self, q) -> bool:
         """Whether gravity, seen from the ee at pose q, has turned by accumulate_angle from every window kept."""
         g = lambda x: self.robot.ee_pose(x)[1][2]             # the world z axis in the ee frame
-        return all(np.arccos(np.clip(g(q) @ g(Q.mean(axis=0)), -1, 1)) > self.settings.accumulate_angle
-                   for Q, *_ in self._evidence)
+        return all(np.arccos(np.clip(g(q) @ g(Q.mean(axis=0)), -1, 1)) > self.settings.accumulate_angle for Q, *_ in
+                   self._evidence)
 
     def _change(self, Qw, TAUw, bias, theta_before, kind, then, accept=None, level=None, asked=None, evidence=(),
                 Tw=None):
@@ -360,12 +362,10 @@ class RME:
         `evidence`, combined) now, or as a job on the executor (judged once update finds it done)."""
         Tw = TAUw - bias if Tw is None else Tw
         request = (self._k if asked is None else asked, Qw, Tw, bias, theta_before, kind, then, accept, level)
-        Qs, Ts = [x[0] for x in evidence] + [Qw], [x[1] for x in evidence] + [Tw]
-        args = (Qs, Ts) if evidence else (Qw, Tw)          # windows of their own (never written again)
+        args = ([x[0] for x in evidence] + [Qw], [x[1] for x in evidence] + [Tw]) if evidence else (Qw, Tw)   # their own
         if self.executor is None:
-            self._judge(*request, *self._estimate(*args))
-        else:
-            self._job = (self.executor.submit(self._estimate, *args), request, self._k, False)
+            return self._judge(*request, *self._estimate(*args))
+        self._job = (self.executor.submit(self._estimate, *args), request, self._k, False)
 
     def _judge(self, k, Qw, Tw, bias, theta_before, kind, then, accept, level, e, S):
         """Judge the estimate e of the window requested at sample k against the payload before the change, schedule

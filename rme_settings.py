@@ -75,9 +75,10 @@ class RMESettings:
                    f"{self.window}..{keep} samples"),
                   ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
                   ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s"),
-                  ("hold_axial", self.hold_axial, self.hold_axial >= 0, "a time >= 0 s"),
-                  ("axial_radius", self.axial_radius, len(self.axial_radius) == 2 and min(self.axial_radius) >= 0,
-                   "(at the detection, at rest) distances >= 0 m"),
+                  ("hold_axial", self.hold_axial, 0 <= self.hold_axial < np.inf, "a finite time >= 0 s"),
+                  ("axial_radius", self.axial_radius, np.shape(self.axial_radius) == (2,) and all(
+                      isinstance(x, (int, float)) and 0 <= x < np.inf for x in self.axial_radius),
+                   "(while moving, at rest): two finite distances >= 0 m"),
                   ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)")]
         for name, value, ok, want in checks:
             if not ok or (isinstance(value, float) and np.isnan(value)):

@@ -208,6 +208,10 @@ def test_from_xml_works_on_a_three_joint_planar_arm(tmp_path):
     (lambda: RMESettings(reference=600), r"settings.reference: expected 1..30 samples"),
     (lambda: RMESettings(rate=0.0), r"settings.rate: expected a rate > 0"),
     (lambda: RMESettings(window=10), r"settings.window: expected 20..500 samples"),
+    (lambda: RMESettings(hold_axial=np.inf), r"settings.hold_axial: expected a finite time >= 0 s"),
+    (lambda: RMESettings(axial_radius=0.02), r"settings.axial_radius: expected \(while moving, at rest\)"),
+    (lambda: RMESettings(axial_radius=(0.04, np.nan)), r"settings.axial_radius: expected .* two finite distances"),
+    (lambda: RMESettings(axial_radius=None), r"settings.axial_radius: expected"),
 ])
 def test_bad_input_raises_value_error_naming_the_argument(call, match):
     with pytest.raises(ValueError, match=match):

@@ -239,3 +239,33 @@ def test_a_load_centred_below_the_flange_is_compensated_once_it_has_lasted():
     rec, est = hold(5, 3.0, [PayloadChange(1.0, 1.0, (0.05, 0.0, 0.1))])
     assert est.changes_held == 0 and est.history[0].accepted and est.history[0].t < 1.0 + 0.4
     assert within(rec.theta_hat[-1, 0], 1.0)
+
+
+def test_a_press_while_a_loads_estimate_at_rest_is_pending_keeps_that_estimate():
+    """An off-axis 1 kg load read 7 % light at its detection, then a 20 N press through the flange for 1 s before the
+    arm rests: the press is held and released, and the load's estimate at rest still comes (without the press it
+    reads 1.003 kg); a press that superseded it had thrown it away, leaving 0.932 kg."""
+    load = PayloadChange(1.0, 1.0, (0.03, -0.02, 0.1))
+    rec, est = hold(5, 6.0, [load, Push(1.7, (0.0, 0.0, -20.0), 1.0, body="link7", offset=(0.0, 0.0, 0.107))])
+    assert est.changes_held >= 1 and any(e.kind == "at rest" and e.accepted for e in est.history), \
+        [(e.t, e.kind, e.accepted, e.mean.round(3).tolist()) for e in est.history]
+    assert abs(rec.theta_hat[-1, 0] - 1.0) < 0.03 and rec.theta_hat[:, 0].max() < 1.2   # the press never applied
+
+
+def test_on_a_cycling_arm_a_centred_load_is_compensated_once_it_has_lasted_and_a_later_press_is_not():
+    """The arm never rests on the limit cycle: a load centred below the flange is estimated once it has lasted
+    hold_axial, on the window of its detection (the pose before it is long gone), and a 20 N press through the
+    flange 6 s later is held afresh and, released while the arm still moves, never applied."""
+    from cpic import LimitCycle
+    rng = np.random.default_rng(5)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    p0, R0 = plant.robot.ee_pose(Q_READY)
+    cycle = LimitCycle(p0 - np.array([0.0, 0.0, 0.05]), R0, radius=0.05)
+    est = RME(plant.robot, settings=SYNC, rng=np.random.default_rng(6))
+    events = [PayloadChange(2.0, 1.0, (0.0, 0.0, 0.1)), Push(8.0, (0.0, 0.0, -20.0), 1.5, body="link7",
+                                                              offset=(0.0, 0.0, 0.107))]
+    rec = run(plant, CPIC(plant.robot, cycle), 11.0, est, events, q0=Q_READY)
+    applied = [e for e in est.history if e.accepted]
+    assert len(applied) == 1 and 2.0 + 2.5 <= applied[0].t < 2.0 + 3.0, [(e.t, e.kind) for e in est.history]
+    assert within(applied[0].mean[0], 1.0) and est.changes_held == 2
+    assert np.abs(rec.theta_hat[rec.t >= 5.0, 0] - applied[0].mean[0]).max() < 1e-12   # the press: nothing applied
