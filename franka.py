@@ -22,7 +22,7 @@ from robot.backends import (Q_START, FrankySimBackend, PandaPyBackend, Pylibfran
 from robot.worker import WORKERS, EstimatorSpec, make_worker
 
 __all__ = ["Q_START", "State", "paper_tau_ext", "SimBackend", "PylibfrankaBackend", "PandaPyBackend", "FrankySimBackend",
-           "Safety", "SafetyConfig", "make_controller", "run_loop", "summarize", "save_log", "main"]  # backends: robot/
+           "Safety", "SafetyConfig", "make_controller", "run_loop", "own_cpu", "summarize", "save_log", "main"]  # backends: robot/
 LIBS = ("pylibfranka", "panda-py")
 TASKS = ("hold", "limit-cycle")
 SIM_COM = (0.03, -0.02, 0.05)   # m, ee frame: the --sim payload, off the flange axis (a load on it waits: hold_axial)
@@ -205,6 +205,32 @@ def realtime_priority(priority: int = 80):
         os.sched_setscheduler(0, before[0], before[1])
 
 
+@contextlib.contextmanager
+def own_cpu(pids=()):
+    """Run the block with the calling thread on a CPU of its own (the last one it may use) and the processes `pids`
+    (the estimate's worker, a simulator) kept off it, restoring every affinity after; yields that CPU, or None when
+    only one CPU is allowed or Linux refuses. A worker that ran on the loop's CPU while the loop waited for its
+    state left the loop's next cycle in cold caches (franky-sim: in-flight p99 0.23-0.35 ms, pinned 0.23-0.25 ms)."""
+    try:
+        mine = os.sched_getaffinity(0)
+        theirs = [(p, os.sched_getaffinity(p)) for p in pids]
+        cpu = max(mine) if len(mine) > 1 else None
+        if cpu is not None:
+            os.sched_setaffinity(0, {cpu})
+            for p, a in theirs:
+                os.sched_setaffinity(p, (a - {cpu}) or a)
+    except (AttributeError, OSError):
+        mine, cpu = None, None
+    try:
+        yield cpu
+    finally:
+        if cpu is not None:
+            for p, a in theirs:
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(p, a)
+            os.sched_setaffinity(0, mine)
+
+
 def _collect_garbage():
     """What the collector would do at this point, by its own thresholds: the youngest generation whose count is
     over its threshold, and the ones below it (the loop calls this after its write; automatic collection is off)."""
@@ -310,7 +336,8 @@ def main(argv=None) -> int:
     estimator, switch = spec.build(executor=worker), sys.getswitchinterval()
     sys.setswitchinterval(1e-4)                # the loop gets the GIL back from an estimate's thread within 0.1 ms
     try:
-        summary, log = run_loop(backend, robot, controller, estimator, args.seconds, dry_run=args.dry_run)
+        with own_cpu([worker.pid] if hasattr(worker, "pid") else []):
+            summary, log = run_loop(backend, robot, controller, estimator, args.seconds, dry_run=args.dry_run)
     finally:
         sys.setswitchinterval(switch)
         if worker is not None:

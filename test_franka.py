@@ -458,3 +458,20 @@ def test_the_warm_up_before_the_loop_changes_nothing_it_commands(monkeypatch):
     (warm, est_warm), (cold, est_cold) = hold(True), hold(False)
     np.testing.assert_array_equal(warm["tau_cmd"], cold["tau_cmd"])
     assert [e.mean.tolist() for e in est_warm.history] == [e.mean.tolist() for e in est_cold.history] != []
+
+
+def test_own_cpu_keeps_the_loop_on_one_cpu_and_other_processes_off_it_then_restores_them():
+    import subprocess
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one CPU allowed here: nothing to keep apart")
+    mine = os.sched_getaffinity(0)
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        theirs = os.sched_getaffinity(child.pid)
+        with franka.own_cpu([child.pid]) as cpu:
+            assert os.sched_getaffinity(0) == {cpu} and cpu in mine
+            assert cpu not in os.sched_getaffinity(child.pid) and os.sched_getaffinity(child.pid) <= theirs
+        assert os.sched_getaffinity(0) == mine and os.sched_getaffinity(child.pid) == theirs
+    finally:
+        child.kill()                                   # its own process id
+        child.wait(timeout=10)

@@ -94,7 +94,8 @@ def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0
     module's server, started frictionless on `hostname` in its own process and stopped by its own pid at the end;
     the server adds `mass` at `com` to the hand when the loop reads tick `at`. realtime: the loop's thread at
     SCHED_FIFO when permitted (franka.realtime_priority; the server and the worker keep their own), as libfranka
-    runs it on a robot; summary["realtime"] says whether it was. Returns franka.run_loop's (summary, log) and the
+    runs it on a robot, on a CPU the server and the worker keep off (franka.own_cpu); summary["realtime"] says
+    whether it was at SCHED_FIFO. Returns franka.run_loop's (summary, log) and the
     estimator. Needs pylibfranka and franky-sim (requirements-robot.txt)."""
     import franka
     from dynamics import Robot
@@ -119,7 +120,8 @@ def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0
                 raise RuntimeError("franky-sim did not start")
             backend = franka.FrankySimBackend(hostname, realtime=False)
             est = spec.build(executor=worker)
-            with franka.realtime_priority() if realtime else contextlib.nullcontext(False) as fifo:
+            with franka.realtime_priority() if realtime else contextlib.nullcontext(False) as fifo, \
+                    franka.own_cpu([worker.pid, server.pid]) if realtime else contextlib.nullcontext():
                 summary, log = franka.run_loop(_LoadAt(backend, server, at), robot,
                                                franka.make_controller(robot, backend.initial.q, "hold"), est, seconds)
             summary["realtime"] = fifo
