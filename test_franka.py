@@ -475,3 +475,17 @@ def test_own_cpu_keeps_the_loop_on_one_cpu_and_other_processes_off_it_then_resto
     finally:
         child.kill()                                   # its own process id
         child.wait(timeout=10)
+
+
+def test_a_load_centred_below_the_flange_is_held_then_estimated_by_the_worker_process():
+    """The press hold with the estimates in a worker process, as on a robot: 1 kg 5 cm straight below the flange at
+    the hold pose is held at its detection and estimated once it has lasted hold_axial (2.5 s), at rest."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=4)
+    with ProcessWorker(spec) as worker:
+        backend = franka.SimBackend(np.random.default_rng(3), payload=[(1.0, 1.0, (0.0, 0.0, 0.05))])
+        est = spec.build(executor=worker)
+        franka.run_loop(backend, ROBOT, franka.make_controller(ROBOT, backend.initial.q, "hold"), est, seconds=4.5)
+    applied = [e for e in est.history if e.accepted]
+    assert est.changes_held == 1 and len(applied) == 1, [(e.t, e.kind, e.accepted) for e in est.history]
+    assert applied[0].kind == "at rest" and 1.0 + 2.5 <= applied[0].t < 1.0 + 3.2 and abs(applied[0].mean[0] - 1.0) < 0.05
