@@ -239,7 +239,8 @@ def diagnose_benchmark(seconds: float = 20.0, repeats: int = 5) -> dict:
 
 def worker_benchmark(seconds: float = 8.0, seed: int = 0, workers=("thread", "process", "callback")) -> dict:
     """franka.py's loop (CPIC hold + RME) on the paced realistic plant (one state per ms of wall time, as the robot
-    gives them), a load of 1.0 / 0.5 kg added and removed every second. Per worker ("callback": the estimates within
+    gives them), a load of 1.0 / 0.5 kg added and removed every second, a worker process kept off the loop's CPU
+    (franka.own_cpu, as franka.py does). Per worker ("callback": the estimates within
     RME.update): the callback time [ms] over all cycles and over the cycles with an estimate in flight (median, p99,
     max), missed cycles (none on the plant: it waits), the estimates made and the mass compensated at the end."""
     import franka
@@ -254,8 +255,9 @@ def worker_benchmark(seconds: float = 8.0, seed: int = 0, workers=("thread", "pr
         est, switch = spec.build(executor=worker), sys.getswitchinterval()
         sys.setswitchinterval(1e-4)                # as franka.py
         try:
-            summary, _ = franka.run_loop(backend, robot, franka.make_controller(robot, backend.initial.q), est,
-                                         seconds)
+            with franka.own_cpu([worker.pid] if hasattr(worker, "pid") else []):   # as franka.py
+                summary, _ = franka.run_loop(backend, robot, franka.make_controller(robot, backend.initial.q), est,
+                                             seconds)
         finally:
             sys.setswitchinterval(switch)
             if worker is not None:
