@@ -22,7 +22,8 @@ from robot.backends import (Q_START, FrankySimBackend, PandaPyBackend, Pylibfran
 from robot.worker import WORKERS, EstimatorSpec, make_worker
 
 __all__ = ["Q_START", "State", "paper_tau_ext", "SimBackend", "PylibfrankaBackend", "PandaPyBackend", "FrankySimBackend",
-           "Safety", "SafetyConfig", "make_controller", "run_loop", "own_cpu", "summarize", "save_log", "main"]  # backends: robot/
+           "Safety", "SafetyConfig", "make_controller", "run_loop", "own_cpu", "summarize", "save_log",
+           "main"]  # backends: robot/
 LIBS = ("pylibfranka", "panda-py")
 TASKS = ("hold", "limit-cycle")
 SIM_COM = (0.03, -0.02, 0.05)   # m, ee frame: the --sim payload, off the flange axis (a load on it waits: hold_axial)

@@ -212,8 +212,8 @@ class RME:
         s = self.settings
         Q, TAU, Rs = self._buffer()
         q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
-        held, pending = (self._refine, None) if (self._refine or {}).get("held") else (None, self._refine)   # a refine:
-        level = Rs[-s.window:].mean(axis=0)   # refer to before its change (no rest yet)
+        held, pending = (self._refine, None) if (self._refine or {}).get("held") else (None, self._refine)
+        level = Rs[-s.window:].mean(axis=0)   # (pending: an estimate at rest is due: refer to before its change)
         if self._lv.undone(Q[-1], level):
             self._held, self._refine = None, pending if held is None else self._resumed(held)
             return                         # back to the level before a change that was no payload: its release
@@ -228,7 +228,7 @@ class RME:
             return                         # a push, a bias step
         yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        if self._held_back(level - bias, J, asked - s.window, int(np.abs(self._dq).max() < s.monitor_speed)):   # still?
+        if self._held_back(level - bias, J, asked - s.window, int(np.abs(self._dq).max() < s.monitor_speed)):
             self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
             self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
                                 resume=pending if held is None else held["resume"],                     # again at
