@@ -17,6 +17,7 @@ import numpy as np
 
 from cpic import CPIC, Attractor, CPICConfig, LimitCycle
 from dynamics import Robot
+from rme import RME
 from robot.backends import (Q_START, FrankySimBackend, PandaPyBackend, PylibfrankaBackend, SimBackend, State,
                             paper_tau_ext)
 from robot.worker import WORKERS, EstimatorSpec, make_worker
@@ -181,8 +182,8 @@ def _warm_up(robot, controller, estimator):
     if isinstance(controller, CPIC) and controller.robot is robot:
         Safety(robot.torque_limits())._command(controller.step(Q_START, zeros, zeros, zeros)[0], controller.G)
         controller.reset()
-    if type(estimator).__name__ == "RME":
-        spare = type(estimator)(robot, weights=None, settings=estimator.settings)
+    if isinstance(estimator, RME):
+        spare = RME(robot, weights=None, settings=estimator.settings)
         for _ in range(3):
             spare.update(Q_START, zeros, zeros)
 
@@ -212,24 +213,28 @@ def own_cpu(pids=()):
     (the estimate's worker, a simulator) kept off it, restoring every affinity after; yields that CPU, or None when
     only one CPU is allowed or Linux refuses. A worker that ran on the loop's CPU while the loop waited for its
     state left the loop's next cycle in cold caches (franky-sim: in-flight p99 0.23-0.35 ms, pinned 0.23-0.25 ms)."""
+    def restore():
+        for p, a in theirs + [(0, mine)]:
+            with contextlib.suppress(OSError):
+                os.sched_setaffinity(p, a)
     try:
-        mine = os.sched_getaffinity(0)
-        theirs = [(p, os.sched_getaffinity(p)) for p in pids]
+        mine, theirs = os.sched_getaffinity(0), [(p, os.sched_getaffinity(p)) for p in pids]
         cpu = max(mine) if len(mine) > 1 else None
+    except (AttributeError, OSError):
+        cpu = None
+    try:
         if cpu is not None:
             os.sched_setaffinity(0, {cpu})
             for p, a in theirs:
                 os.sched_setaffinity(p, (a - {cpu}) or a)
-    except (AttributeError, OSError):
-        mine, cpu = None, None
+    except OSError:                                    # half pinned: put everything back
+        restore()
+        cpu = None
     try:
         yield cpu
     finally:
         if cpu is not None:
-            for p, a in theirs:
-                with contextlib.suppress(OSError):
-                    os.sched_setaffinity(p, a)
-            os.sched_setaffinity(0, mine)
+            restore()
 
 
 def _collect_garbage():

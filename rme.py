@@ -148,7 +148,8 @@ class RME:
         if self._steps is not None and self._steps[1] < self._k and next(self._steps[0], True):
             self._steps = None                         # with an executor: one step per sample, from the next one
         speed = np.abs(dq).max()
-        self._still, self._calm = (self._still + 1) * (speed < s.rest_speed), (self._calm + 1) * (speed < s.monitor_speed)
+        self._still = self._still + 1 if speed < s.rest_speed else 0
+        self._calm = self._calm + 1 if speed < s.monitor_speed else 0
         if self._job is not None and self._job[2] < self._k:           # polled from the next sample on
             if self._job[3]:                           # received on the sample before: judged now
                 (future, request, *_), self._job = self._job, None
@@ -160,7 +161,7 @@ class RME:
             r = self._refine                           # (a held change is estimated once it has lasted, moving or not)
             if self._still >= s.window or (self._calm >= s.monitor_window and self._k > r["deadline"] - s.rate / 2) \
                     or (r.get("held") and self._k - r["since"] >= s.hold_axial * s.rate):
-                self._on_rest()
+                self._on_rest(J)
             elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
         elif s.monitor and idle and self._calm >= s.monitor_window and self._k % 10 == 0:
@@ -248,9 +249,9 @@ class RME:
                 self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
         self._change(Qw, TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
 
-    def _on_rest(self):
-        """Once the arm is still for a window after a detection, estimate again from that window (friction no longer
-        holds part of the load). A change held at the detection (_held_back): released, still held, or estimated."""
+    def _on_rest(self, J):
+        """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part
+        of the load). A change held at the detection (_held_back, J: update's): released, still held, or estimated."""
         s, r, keep = self.settings, self._refine, len(self._r)
         rest = self._still >= s.window or self._calm >= s.monitor_window
         if r.get("held"):                                              # every 10th sample, from the rings
@@ -265,8 +266,7 @@ class RME:
                 r = self._refine = dict(r, held=False)                 #   what is left is estimated at rest
                 if not rest:
                     return
-            elif self._k - r["since"] < s.hold_axial * s.rate and through_flange(self.robot.jacobian(q), level - r[
-                    "bias"], s.axial_radius[1]):
+            elif self._k - r["since"] < s.hold_axial * s.rate and through_flange(J, level - r["bias"], s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
         self._refine, self._held = None, None
         if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
