@@ -1,6 +1,6 @@
 """franka.py: the 1 kHz loop end to end on the project's plant, the safety layer against closed forms, libfranka's
-tau_ext sign, the backends' refusal to start without their package or robot, and (when installed) pylibfranka
-against the franky-sim FCI server on 127.0.0.1."""
+tau_ext sign, the backends' refusal to start without their package or robot, the warm-up, real-time priority and
+CPU pinning (the worker process: test_worker.py; pylibfranka against franky-sim: test_franky_sim.py)."""
 import json
 import os
 import socket
@@ -187,122 +187,6 @@ def test_cli_runs_the_estimates_beside_the_loop_and_restores_the_switch_interval
     assert set(flight) == {"median", "p99", "max", "cycles"} and flight["cycles"] <= summary["cycles"]
 
 
-def _windows(robot, rng, thetas):
-    """(q, tau_ext) 200-sample windows near the ready pose carrying each payload theta, with 0.05 Nm noise."""
-    out = []
-    for th in thetas:
-        q = franka.Q_START + 0.01 * rng.standard_normal((200, 7))
-        out.append((q, robot.payload_torque(q, th) + 0.05 * rng.standard_normal((200, 7))))
-    return out
-
-
-def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
-    """The worker rebuilds the estimator from the spec (MJCF, weights, settings, seed): the same sequence of windows
-    gives exactly the estimates (mean, covariance, prior, Y) of the estimator the spec builds in this process, whether
-    a job travels through the shared memory (none out before it), pickled (queued behind another) or is a list of
-    windows (combined evidence, pickled)."""
-    from robot.worker import EstimatorSpec, ProcessWorker
-    spec = EstimatorSpec(seed=11)
-    windows = _windows(ROBOT, np.random.default_rng(5), [(1.0, 0.0, 0.0, 0.05), (0.5, 0.02, -0.01, 0.1),
-                                                         (1.5, -0.03, 0.02, 0.02), (0.8, 0.01, 0.0, 0.08)])
-    combined = ([windows[1][0], windows[3][0]], [windows[1][1], windows[3][1]])
-    here = spec.build()
-    ref = [here._estimate(q, tau) for q, tau in windows[:3]] + [here._estimate(*combined), here._estimate(*windows[3])]
-    with ProcessWorker(spec) as worker:
-        there = spec.build(executor=worker)
-        jobs = [worker.submit(there._estimate, q, tau) for q, tau in windows[:3]]    # queued: answered in order
-        got = [job.result() for job in jobs]
-        got += [worker.submit(there._estimate, *combined).result(), worker.submit(there._estimate, *windows[3]).result()]
-        assert not worker.busy() and worker.pid != os.getpid()
-    for (e_ref, Y_ref), (e, Y) in zip(ref, got):
-        for key in ("mean", "cov", "std", "prior", "observed"):
-            assert np.array_equal(getattr(e, key), getattr(e_ref, key)), key
-        assert e.iterations == e_ref.iterations and e.converged == e_ref.converged
-        assert all(np.array_equal(a, b) for a, b in zip(Y if isinstance(Y, list) else [Y], Y_ref if isinstance(
-            Y_ref, list) else [Y_ref])) and type(Y) is type(Y_ref)
-    assert abs(got[0][0].mean[0] - 1.0) < 0.1                    # and it is an estimate of the payload
-
-
-def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
-    """prepare(q, tau) puts the windows in shared memory ahead of submit; a submit with other arrays (equal or not)
-    sends its own, so a stale preparation never answers another job. Both wait for the next flush (busy, done,
-    result): franka.run_loop calls busy() after each write, off the state-to-command path."""
-    from robot.worker import EstimatorSpec, ProcessWorker
-    spec = EstimatorSpec(seed=3)
-    (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8),
-                                          [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
-    here = spec.build()
-    ref_a, ref_b, ref_c = (here._estimate(q, tau)[0] for q, tau in ((q_a, tau_a), (q_b, tau_b), (q_a, tau_a)))
-    with ProcessWorker(spec) as worker:
-        there = spec.build(executor=worker)
-        worker.prepare(q_a, tau_a)
-        job = worker.submit(there._estimate, q_a, tau_a)
-        assert worker._outbox and worker.busy() and not worker._outbox   # sent by the flush busy() makes
-        got_a = job.result()[0]
-        worker.prepare(q_a, tau_a)                     # prepared, then another window submitted
-        got_b = worker.submit(there._estimate, q_b, tau_b).result()[0]
-        worker.collect_in_done = False                 # as in franka.run_loop: results come in through busy()
-        job = worker.submit(there._estimate, q_a, tau_a)
-        assert worker.busy()                           # sent
-        for _ in range(500):                           # at most 5 s for the answer to arrive
-            if worker._arrived():
-                break
-            time.sleep(0.01)
-        assert worker._arrived() and not job.done()    # arrived, not received: done() only reads
-        assert not worker.busy() and job.done() and np.array_equal(job.result()[0].mean, ref_c.mean)
-    assert np.array_equal(got_a.mean, ref_a.mean) and np.array_equal(got_b.mean, ref_b.mean)
-    assert abs(got_a.mean[0] - 1.0) < 0.1 and abs(got_b.mean[0] - 0.4) < 0.1
-
-
-def test_a_job_that_cannot_be_sent_fails_alone():
-    """A job whose windows cannot be sent (here: not picklable, queued behind another) raises at the flush that tries
-    it, and its result() raises at once instead of waiting for an answer that never comes; the job before it and
-    the job after it are answered as usual."""
-    import threading
-    from robot.worker import EstimatorSpec, ProcessWorker
-    spec = EstimatorSpec(seed=3)
-    (q_a, tau_a), = _windows(ROBOT, np.random.default_rng(9), [(1.0, 0.0, 0.0, 0.05)])
-    with ProcessWorker(spec) as worker:
-        there = spec.build(executor=worker)
-        first = worker.submit(there._estimate, q_a, tau_a)
-        bad = worker.submit(there._estimate, q_a, [threading.Lock()])
-        with pytest.raises(RuntimeError, match="could not be sent"):
-            worker.busy()
-        t0 = time.perf_counter()
-        with pytest.raises(RuntimeError, match="could not be sent"):
-            bad.result()
-        assert time.perf_counter() - t0 < 5.0 and abs(first.result()[0].mean[0] - 1.0) < 0.1
-        assert abs(worker.submit(there._estimate, q_a, tau_a).result()[0].mean[0] - 1.0) < 0.1
-
-
-def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
-    from robot.worker import EstimatorSpec, ProcessWorker, make_worker
-    with pytest.raises(ValueError, match="weights"):
-        EstimatorSpec(weights=str(tmp_path / "none.npz"))
-    with pytest.raises(ValueError, match="seed"):
-        EstimatorSpec(seed=-1)
-    with pytest.raises(ValueError, match="worker"):
-        make_worker("fiber", EstimatorSpec())
-    bad = tmp_path / "bad.npz"
-    bad.write_bytes(b"not a weights file")
-    with pytest.raises(ValueError, match="spec"):                 # built in the worker: its error comes back
-        ProcessWorker(EstimatorSpec(weights=str(bad)))
-    with ProcessWorker(EstimatorSpec(weights=None)) as worker:
-        with pytest.raises(ValueError, match="fn"):
-            worker.submit(print, 1)
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc and Linux scheduling policies")
-def test_the_worker_process_runs_one_thread_below_the_loop():
-    """Every thread of the worker yields to the loop: one thread (no BLAS helper threads, which would keep the normal
-    priority and spin beside the loop after each product), scheduled SCHED_IDLE, read back from the kernel."""
-    from robot.worker import EstimatorSpec, ProcessWorker
-    with ProcessWorker(EstimatorSpec(weights=None)) as worker:
-        threads = os.listdir(f"/proc/{worker.pid}/task")
-        policies = {os.sched_getscheduler(int(t)) for t in threads}
-    assert len(threads) == 1 and policies == {os.SCHED_IDLE}, (threads, policies)
-
-
 def _free_port_closed(host="127.0.0.1"):
     with socket.socket() as s:
         s.bind((host, 0))
@@ -359,70 +243,6 @@ def test_dry_run_prints_and_commands_nothing(capsys):
     assert capsys.readouterr().out.count("would command") == 2
 
 
-# --- pylibfranka against franky-sim (skipped unless both are installed) -------------------------------------------
-def test_a_prepared_load_changes_the_model_as_adding_it_does():
-    """robot.franky_load: the load worked out ahead (prepared_load) and written in one tick (apply_load) leaves the
-    same model as add_point_mass itself: every array, and MuJoCo's own mass matrix and bias at a random state."""
-    import copy
-
-    import mujoco
-
-    from robot.franky_load import add_point_mass, apply_load, prepared_load
-    live, direct = copy.deepcopy(ROBOT.model), copy.deepcopy(ROBOT.model)
-    body = mujoco.mj_name2id(live, mujoco.mjtObj.mjOBJ_BODY, "link7")
-    prepared = prepared_load(live, body, 1.0, (0.0, 0.0, 0.05))
-    assert {f for f, _ in prepared[0]} >= {"body_mass", "body_ipos", "body_subtreemass"}
-    apply_load(live, prepared)
-    add_point_mass(direct, body, 1.0, (0.0, 0.0, 0.05))
-    for f in dir(live):
-        a = getattr(live, f, None)
-        if not f.startswith("_") and isinstance(a, np.ndarray):
-            assert np.array_equal(a, getattr(direct, f)), f
-    q, out = np.random.default_rng(3).uniform(-1, 1, (2, live.nv)), []
-    for model in (live, direct):
-        data = mujoco.MjData(model)
-        data.qpos[:], data.qvel[:] = q[0], q[1]
-        mujoco.mj_forward(model, data)
-        M = np.zeros((model.nv, model.nv))
-        mujoco.mj_fullM(model, data, M)
-        out.append(np.concatenate([M.ravel(), data.qfrc_bias]))
-    assert np.array_equal(out[0], out[1])
-    assert float(live.body_mass[body]) == float(ROBOT.model.body_mass[body]) + 1.0
-
-
-def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_hand():
-    """franky-sim (frictionless joints, see robot/franky_load.py) on 127.0.0.1; pylibfranka's loop with CPIC and RME
-    (estimates in a worker process); 1 kg 5 cm along the hand's z axis and 3.6 cm off it, added to the simulated hand's physics at
-    1.5 s. Per robot tick (libfranka's durations; franky-sim runs below real time): no missed packet, the load
-    detected after it was added, its mass within 0.1 kg at rest, torques within limits and rate."""
-    pytest.importorskip("pylibfranka")
-    pytest.importorskip("franky_sim")
-    from robot.franky_load import run_client
-    at = 1500
-    summary, log, est = run_client(seconds=5.0, at=at, mass=1.0, com=(0.03, -0.02, 0.05), seed=4)
-    gaps = np.flatnonzero(np.diff(log["t"]) > 1.5e-3) + 1          # ticks whose state came late, and why
-    late = [(int(k), round(1e3 * float(log["t"][k] - log["t"][k - 1]), 1), round(1e3 * float(log["callback_s"][k - 1]), 2),
-             round(1e3 * float(log["after_s"][k - 1]), 2), round(1e3 * float(log["read_s"][k]), 2)) for k in gaps]
-    # (tick, ms since the last, the last callback, the work after its write, the wait for this state) [ms]
-    assert summary["cycles"] == 5000 and summary["stopped"] == "end", summary["stopped"]
-    # a packet the loop missed: a late state after a cycle of the loop (state to command, then the work after the
-    # write) that did not fit in its 1 ms tick. A late state after a cycle that did fit is the simulator's own clock
-    # jumping while the loop waited for it (franky-sim is a Python MuJoCo server sharing these 2 cores: seen 0-3
-    # times per run, 3-4 ms each, the loop's cycle 0.2-0.4 ms before each); a robot's clock does not stall
-    loop_missed = [g for g in late if g[2] + g[3] >= 0.9]
-    assert not loop_missed and summary["missed_cycles"] == sum(round(g[1]) - 1 for g in late), late
-    assert np.abs(log["tau_ext"][at - 200:at - 1]).max() < 0.3    # held, unloaded: the hand is in the model
-    applied = [e for e in est.history if e.accepted]
-    assert applied and at / 1000 < applied[0].t < at / 1000 + 1.0     # detected after it was added, within 1 s
-    rest = [e for e in applied if e.kind == "at rest"]
-    assert rest and abs(rest[-1].mean[0] - 1.0) < 0.1 and abs(est.theta[0] - 1.0) < 0.1
-    sent = log["tau_cmd"] + ROBOT.gravity(log["q"])
-    assert np.all(np.abs(sent) <= LIMIT + 1e-9) and np.all(np.abs(log["tau_J"]) <= LIMIT + 1e-6)
-    steps = np.diff(np.vstack([np.zeros((1, 7)), log["tau_cmd"]]), axis=0)
-    assert np.abs(steps).max() <= 1.0 + 1e-9
-    assert np.abs(log["q"] - log["q"][0]).max() < 0.1                # held (a 1 kg step sags it by a few cm)
-
-
 def test_realtime_priority_sets_sched_fifo_only_inside_and_restores_the_policy():
     before = os.sched_getscheduler(0)
     with franka.realtime_priority(10) as fifo:
@@ -475,17 +295,3 @@ def test_own_cpu_keeps_the_loop_on_one_cpu_and_other_processes_off_it_then_resto
     finally:
         child.kill()                                   # its own process id
         child.wait(timeout=10)
-
-
-def test_a_load_centred_below_the_flange_is_held_then_estimated_by_the_worker_process():
-    """The press hold with the estimates in a worker process, as on a robot: 1 kg 5 cm straight below the flange at
-    the hold pose is held at its detection and estimated once it has lasted hold_axial (2.5 s), at rest."""
-    from robot.worker import EstimatorSpec, ProcessWorker
-    spec = EstimatorSpec(seed=4)
-    with ProcessWorker(spec) as worker:
-        backend = franka.SimBackend(np.random.default_rng(3), payload=[(1.0, 1.0, (0.0, 0.0, 0.05))])
-        est = spec.build(executor=worker)
-        franka.run_loop(backend, ROBOT, franka.make_controller(ROBOT, backend.initial.q, "hold"), est, seconds=4.5)
-    applied = [e for e in est.history if e.accepted]
-    assert est.changes_held == 1 and len(applied) == 1, [(e.t, e.kind, e.accepted) for e in est.history]
-    assert applied[0].kind == "at rest" and 1.0 + 2.5 <= applied[0].t < 1.0 + 3.2 and abs(applied[0].mean[0] - 1.0) < 0.05

@@ -1,14 +1,20 @@
 """Streaming RME with its estimates run as jobs beside the 1 kHz loop (RME(executor=...)): the same estimate as
-within the loop, applied once the job is done, update's own time free of the estimate, no change request lost."""
+within the loop, applied once the job is done, update's own time free of the estimate, no change request lost; and
+robot/worker.py's worker process (the estimator it rebuilds, shared memory, failures, its scheduling)."""
 import math
+import os
 import sys
 import time
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 
 import numpy as np
+import pytest
 
+import franka
 from dynamics import Q_READY, Robot
 from rme import RME, RMESettings
+
+ROBOT = Robot.panda()
 
 SYNC = RMESettings(asynchronous=False)          # without an executor: applied on the detection sample
 THETA_A = np.array([0.8, 0.02, 0.0, 0.1])      # kg, m (ee frame)
@@ -105,3 +111,135 @@ def test_a_change_requested_while_a_job_is_in_flight_is_not_lost():
     assert abs(detections[0].mean[0] - THETA_A[0]) <= 0.08
     assert abs(detections[1].mean[0] - (THETA_A[0] + THETA_B[0])) <= 0.14, detections[1].mean
     assert detections[1].applied >= 1.7 and abs(est.theta[0] - (THETA_A[0] + THETA_B[0])) <= 0.14
+
+
+# --- the worker process (robot/worker.py) -------------------------------------------------------------------
+def _windows(robot, rng, thetas):
+    """(q, tau_ext) 200-sample windows near the ready pose carrying each payload theta, with 0.05 Nm noise."""
+    out = []
+    for th in thetas:
+        q = franka.Q_START + 0.01 * rng.standard_normal((200, 7))
+        out.append((q, robot.payload_torque(q, th) + 0.05 * rng.standard_normal((200, 7))))
+    return out
+
+
+def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
+    """The worker rebuilds the estimator from the spec (MJCF, weights, settings, seed): the same sequence of windows
+    gives exactly the estimates (mean, covariance, prior, Y) of the estimator the spec builds in this process, whether
+    a job travels through the shared memory (none out before it), pickled (queued behind another) or is a list of
+    windows (combined evidence, pickled)."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=11)
+    windows = _windows(ROBOT, np.random.default_rng(5), [(1.0, 0.0, 0.0, 0.05), (0.5, 0.02, -0.01, 0.1),
+                                                         (1.5, -0.03, 0.02, 0.02), (0.8, 0.01, 0.0, 0.08)])
+    combined = ([windows[1][0], windows[3][0]], [windows[1][1], windows[3][1]])
+    here = spec.build()
+    ref = [here._estimate(q, tau) for q, tau in windows[:3]] + [here._estimate(*combined), here._estimate(*windows[3])]
+    with ProcessWorker(spec) as worker:
+        there = spec.build(executor=worker)
+        jobs = [worker.submit(there._estimate, q, tau) for q, tau in windows[:3]]    # queued: answered in order
+        got = [job.result() for job in jobs]
+        got += [worker.submit(there._estimate, *combined).result(), worker.submit(there._estimate, *windows[3]).result()]
+        assert not worker.busy() and worker.pid != os.getpid()
+    for (e_ref, Y_ref), (e, Y) in zip(ref, got):
+        for key in ("mean", "cov", "std", "prior", "observed"):
+            assert np.array_equal(getattr(e, key), getattr(e_ref, key)), key
+        assert e.iterations == e_ref.iterations and e.converged == e_ref.converged
+        assert all(np.array_equal(a, b) for a, b in zip(Y if isinstance(Y, list) else [Y], Y_ref if isinstance(
+            Y_ref, list) else [Y_ref])) and type(Y) is type(Y_ref)
+    assert abs(got[0][0].mean[0] - 1.0) < 0.1                    # and it is an estimate of the payload
+
+
+def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
+    """prepare(q, tau) puts the windows in shared memory ahead of submit; a submit with other arrays (equal or not)
+    sends its own, so a stale preparation never answers another job. Both wait for the next flush (busy, done,
+    result): franka.run_loop calls busy() after each write, off the state-to-command path."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=3)
+    (q_a, tau_a), (q_b, tau_b) = _windows(ROBOT, np.random.default_rng(8),
+                                          [(1.0, 0.0, 0.0, 0.05), (0.4, 0.02, 0.0, 0.1)])
+    here = spec.build()
+    ref_a, ref_b, ref_c = (here._estimate(q, tau)[0] for q, tau in ((q_a, tau_a), (q_b, tau_b), (q_a, tau_a)))
+    with ProcessWorker(spec) as worker:
+        there = spec.build(executor=worker)
+        worker.prepare(q_a, tau_a)
+        job = worker.submit(there._estimate, q_a, tau_a)
+        assert worker._outbox and worker.busy() and not worker._outbox   # sent by the flush busy() makes
+        got_a = job.result()[0]
+        worker.prepare(q_a, tau_a)                     # prepared, then another window submitted
+        got_b = worker.submit(there._estimate, q_b, tau_b).result()[0]
+        worker.collect_in_done = False                 # as in franka.run_loop: results come in through busy()
+        job = worker.submit(there._estimate, q_a, tau_a)
+        assert worker.busy()                           # sent
+        for _ in range(500):                           # at most 5 s for the answer to arrive
+            if worker._arrived():
+                break
+            time.sleep(0.01)
+        assert worker._arrived() and not job.done()    # arrived, not received: done() only reads
+        assert not worker.busy() and job.done() and np.array_equal(job.result()[0].mean, ref_c.mean)
+    assert np.array_equal(got_a.mean, ref_a.mean) and np.array_equal(got_b.mean, ref_b.mean)
+    assert abs(got_a.mean[0] - 1.0) < 0.1 and abs(got_b.mean[0] - 0.4) < 0.1
+
+
+def test_a_job_that_cannot_be_sent_fails_alone():
+    """A job whose windows cannot be sent (here: not picklable, queued behind another) raises at the flush that tries
+    it, and its result() raises at once instead of waiting for an answer that never comes; the job before it and
+    the job after it are answered as usual."""
+    import threading
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=3)
+    (q_a, tau_a), = _windows(ROBOT, np.random.default_rng(9), [(1.0, 0.0, 0.0, 0.05)])
+    with ProcessWorker(spec) as worker:
+        there = spec.build(executor=worker)
+        first = worker.submit(there._estimate, q_a, tau_a)
+        bad = worker.submit(there._estimate, q_a, [threading.Lock()])
+        with pytest.raises(RuntimeError, match="could not be sent"):
+            worker.busy()
+        t0 = time.perf_counter()
+        with pytest.raises(RuntimeError, match="could not be sent"):
+            bad.result()
+        assert time.perf_counter() - t0 < 5.0 and abs(first.result()[0].mean[0] - 1.0) < 0.1
+        assert abs(worker.submit(there._estimate, q_a, tau_a).result()[0].mean[0] - 1.0) < 0.1
+
+
+def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
+    from robot.worker import EstimatorSpec, ProcessWorker, make_worker
+    with pytest.raises(ValueError, match="weights"):
+        EstimatorSpec(weights=str(tmp_path / "none.npz"))
+    with pytest.raises(ValueError, match="seed"):
+        EstimatorSpec(seed=-1)
+    with pytest.raises(ValueError, match="worker"):
+        make_worker("fiber", EstimatorSpec())
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a weights file")
+    with pytest.raises(ValueError, match="spec"):                 # built in the worker: its error comes back
+        ProcessWorker(EstimatorSpec(weights=str(bad)))
+    with ProcessWorker(EstimatorSpec(weights=None)) as worker:
+        with pytest.raises(ValueError, match="fn"):
+            worker.submit(print, 1)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc and Linux scheduling policies")
+def test_the_worker_process_runs_one_thread_below_the_loop():
+    """Every thread of the worker yields to the loop: one thread (no BLAS helper threads, which would keep the normal
+    priority and spin beside the loop after each product), scheduled SCHED_IDLE, read back from the kernel."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    with ProcessWorker(EstimatorSpec(weights=None)) as worker:
+        threads = os.listdir(f"/proc/{worker.pid}/task")
+        policies = {os.sched_getscheduler(int(t)) for t in threads}
+    assert len(threads) == 1 and policies == {os.SCHED_IDLE}, (threads, policies)
+
+
+
+def test_a_load_centred_below_the_flange_is_held_then_estimated_by_the_worker_process():
+    """The press hold with the estimates in a worker process, as on a robot: 1 kg 5 cm straight below the flange at
+    the hold pose is held at its detection and estimated once it has lasted hold_axial (2.5 s), at rest."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=4)
+    with ProcessWorker(spec) as worker:
+        backend = franka.SimBackend(np.random.default_rng(3), payload=[(1.0, 1.0, (0.0, 0.0, 0.05))])
+        est = spec.build(executor=worker)
+        franka.run_loop(backend, ROBOT, franka.make_controller(ROBOT, backend.initial.q, "hold"), est, seconds=4.5)
+    applied = [e for e in est.history if e.accepted]
+    assert est.changes_held == 1 and len(applied) == 1, [(e.t, e.kind, e.accepted) for e in est.history]
+    assert applied[0].kind == "at rest" and 1.0 + 2.5 <= applied[0].t < 1.0 + 3.2 and abs(applied[0].mean[0] - 1.0) < 0.05
