@@ -11,15 +11,16 @@ import numpy as np
 from scipy.linalg import lapack
 
 import vi
-from detector import Detector, LevelMap, Levels, payload_like, safe_theta, steady_prefix, through_flange
+from detector import Detector, LevelMap, Levels, safe_theta
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings
+from rme_stream import Streaming
 
 __all__ = ["RME", "RMESettings", "Estimate"]
 
 
-class RME:
+class RME(Streaming):
     """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
     use, returning the compensation torque (7,) to add to the controller's torque. executor (ours): runs each streamed
     estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update."""
@@ -52,11 +53,6 @@ class RME:
                                                        #   still, and slower than monitor_speed
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
-
-    def _payload_like(self, d, gate, YJ, mass=None) -> bool:
-        """detector.payload_like for a residual change d (n,) at a pose with payload regressor and Jacobian YJ, from
-        the payload mass compensated (now)."""
-        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1], 1.2 * self.settings.max_mass)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -197,164 +193,6 @@ class RME:
         if self.correction is not None:                               # the effects a better model explains
             TAU = TAU - self.correction.correction(Q, self._dq[order])
         return Q, TAU, self._r[order]
-
-    def _on_detection(self, asked=None):
-        """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
-        change during a pending estimate at rest supersedes it. asked: the sample of a detection made during a job.
-        With an executor its steps run one per sample (no cycle of the loop carries them all); else all at once."""
-        steps = self._detection(asked)
-        if self.executor is not None:              # the first step (the window) now, the next ones from the next sample
-            self._steps = (steps, self._k) if next(steps, True) is None else None
-        else:
-            list(steps)                            # all at once
-
-    def _detection(self, asked):
-        """_on_detection's steps (a generator: each yield hands the rest to the next sample)."""
-        s = self.settings
-        Q, TAU, Rs = self._buffer()
-        q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
-        held, pending = (self._refine, None) if (self._refine or {}).get("held") else (None, self._refine)
-        level = Rs[-s.window:].mean(axis=0)   # (pending: an estimate at rest is due: refer to before its change)
-        if self._lv.undone(Q[-1], level):
-            self._held, self._refine = None, pending if held is None else self._resumed(held)
-            return                         # back to the level before a change that was no payload: its release
-        yield                              # (with an executor each step costs 0.05-0.1 ms in a loop's cold caches)
-        steady = steady_prefix(Rs, s.reference, len(Rs) - s.window) if pending is None else 0
-        yield
-        bias = pending["bias"] if pending is not None else self._lv.bias(Rs[:steady], q_ref)   # the level before,
-        yield                                                                                   # as long as it holds
-        _, R, J = self.robot.kinematics(Q[-1])
-        if not self._payload_like(level - bias, s.min_explained, (self.robot.payload_regressor_from(J, R), J), before[0]):
-            self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
-            return                         # a push, a bias step
-        yield
-        known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        if self._held_back(level - bias, J, asked - s.window, int(np.abs(self._dq).max() < s.monitor_speed)):
-            self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
-            self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
-                                resume=pending if held is None else held["resume"],                     # again at
-                                window=(Q[-s.window:], TAU[-s.window:]), level=level,                   # rest
-                                deadline=self._k + int(s.refine_within * s.rate))
-            return
-        yield
-        Qw, Tw, prepare = Q[-s.window:], TAU[-s.window:] - bias, getattr(self.executor, "prepare", None)
-        if prepare is not None:            # the window into the worker's shared memory now, the job on the next sample
-            prepare(Qw, Tw)
-            yield
-        def then(e, Y):
-            self._lv.rejected = None if e.accepted else (q_ref, bias)   # the level before a change that is no payload
-            if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
-                self._refine = None        #   pending estimate at rest
-            if e.accepted and s.refine:
-                self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Qw, TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
-
-    def _on_rest(self, J):
-        """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part
-        of the load). A change held at the detection (_held_back, J: update's): released, still held, or estimated."""
-        s, r, keep = self.settings, self._refine, len(self._r)
-        rest = self._still >= s.window or self._calm >= s.monitor_window
-        if r.get("held"):                                              # every 10th sample, from the rings
-            if self._k % 10:
-                return
-            q, level = self._q[(self._k - 1) % keep], self._r[(self._k - s.window + np.arange(s.window)) % keep].mean(0)
-            gap = lambda b: np.linalg.norm(level - b)
-            if any(gap(b) <= s.monitor_threshold for b in (r["bias"], self._lv.explained.at(q)) if b is not None):
-                self._refine, self._held = self._resumed(r), None      # back to the level before it, or to one the
-                return                                                 #   compensation explains here: released
-            if gap(r["bias"]) < gap(r["level"]):                       # nearer the level before: the press has gone,
-                r = self._refine = dict(r, held=False)                 #   what is left is estimated at rest
-                if not rest:
-                    return
-            elif self._k - r["since"] < s.hold_axial * s.rate and through_flange(J, level - r["bias"], s.axial_radius[1]):
-                return                                                 # (the monitor stays off meanwhile)
-        self._refine, self._held = None, None
-        if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
-            again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(   # window, then again at
-                r, held=False, deadline=self._k + int(s.refine_within * s.rate)))           # rest
-            return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"])
-        Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e, Y: None, level=r["known"])
-
-    def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
-        r, s = held["resume"], self.settings
-        return None if r is None else dict(r, deadline=self._k + int(s.refine_within * s.rate))
-
-    def _check_consistency(self, Y, J):
-        """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
-        the level explained before at this pose. The very first level is estimated against no payload at all (RME
-        assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
-        taken as explained, unless it is monitor_far from the nearest level known (detector.Levels.judge). Y, J: the
-        payload regressor and Jacobian of the current sample (update's), where a payload is tested."""
-        s = self.settings
-        last = (self._k - s.monitor_window + np.arange(s.monitor_window)) % len(self._r)   # no reorder, no correction
-        level, recent = self._r[last].mean(axis=0), self._r[last[-(s.monitor_window // 3):]].mean(axis=0)
-        if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
-            return                                                     # still changing: not a level yet
-        q = self._q[last].mean(axis=0)
-        first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(d, gate, (Y, J)),
-                                 (first_gate, s.min_explained), s.monitor_far)
-        if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
-            Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
-            same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
-            self._change(Q[-s.window:], TAU[-s.window:], self._evidence[0][2], self.theta, "accumulated",
-                         self._leaves(q, level), same, evidence=self._evidence)   # referred like the first window
-            self._calm = 0
-        if verdict is None:
-            self._held = None
-        held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
-        if verdict is None or verdict == "new" or self._held_back(level - verdict[0], J, self._k - s.monitor_window,
-                                                                  1):   # again at rest (see then)
-            return
-        (reference, kind), first = verdict, verdict[1] == "first"
-        Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
-        if first:                                # against no payload: only a clear payload counts
-            accept = lambda e, Tw, Y: e.explained >= first_gate
-        else:                                    # the new estimate must make the level consistent again: within
-            gap = np.linalg.norm(level - reference)  # 6 % of a large gap (a heavy load's sag moves the bias); far from
-            tol = 0.25 * gap if kind == "far" else min(max(s.monitor_threshold, 0.06 * gap), 0.5 * gap)   # any pose: 3/4
-            accept = lambda e, Tw, Ybar: np.linalg.norm(Tw.mean(axis=0) - Ybar @ vi.phi_of(safe_theta(
-                e.mean, self.theta, s.max_mass))) <= tol
-        def then(e, Y):
-            if e.accepted and first:                                   # what the payload leaves is the bias
-                self._pending[2] = (q, TAU[-s.window:].mean(axis=0) - Y @ vi.phi_of(e.mean))
-            elif first:
-                self._lv.explained.put(q, level)                             # no payload: the level is the bias
-                self.history.pop()                                     # (establishing it is not an estimate)
-            elif kind == "far":
-                self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
-            elif not e.accepted:
-                self._lv.muted.put(q, level)
-            if e.accepted and held and s.refine:
-                self._refine = dict(bias=reference, known=None if kind != "level" else (q, reference), before=before,
-                                    deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Q[-s.window:], TAU[-s.window:], reference, self.theta, "monitor", then, accept,
-                     level=None if kind != "level" else (q, reference))
-        self._calm = 0
-
-    def _held_back(self, d, J, since, rest) -> bool:
-        """Whether a payload-like change d (n,) waits: it adds a downward force through the flange (through_flange, J
-        the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less than hold_axial
-        since self._held (set to `since`, the sample it began by, if None; cleared when such a change goes)."""
-        s = self.settings
-        if s.hold_axial <= 0 or not through_flange(J, d, s.axial_radius[rest]):
-            self._held = None
-            return False
-        self._held = since if self._held is None else self._held
-        return self._k - self._held < s.hold_axial * s.rate
-
-    def _leaves(self, q, level):
-        """then(e, Y) for an estimate at pose q, residual level `level` now: once accepted, what it leaves is explained."""
-        Yq, phi = self.robot.payload_regressor(q), self._phi.copy()
-        return lambda e, Y=None: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
-            e.mean, self.theta, self.settings.max_mass)) - phi))
-
-    def _turned(self, q) -> bool:
-        """Whether gravity, seen from the ee at pose q, has turned by accumulate_angle from every window kept."""
-        g = lambda x: self.robot.ee_pose(x)[1][2]             # the world z axis in the ee frame
-        return all(np.arccos(np.clip(g(q) @ g(Q.mean(axis=0)), -1, 1)) > self.settings.accumulate_angle for Q, *_ in
-                   self._evidence)
 
     def _change(self, Qw, TAUw, bias, theta_before, kind, then, accept=None, level=None, asked=None, evidence=(),
                 Tw=None):
