@@ -87,7 +87,8 @@ class Detector:
     window that starts mid-change; the vector stabilisation test does not grow with the load, as
     |mean s - mean s'| ~ 2 ||tau_mm|| noise does (Alg. 1 delayed a 1.2 kg detection past 500 ms in simulation).
     After firing it stays quiet for `refractory` samples (one change fires once; the buffer then holds only
-    post-detection samples) and then fires again for the next change, a removal included.
+    post-detection samples) and then fires again for the next change, a removal included. `active`: whether the
+    last evaluation found rapid > activation_threshold (a change in the window that may yet settle and fire).
     Work per update: O(n) whatever the window length (prefix sums over a ring of window + 1 entries).
     """
 
@@ -105,7 +106,7 @@ class Detector:
         lo, hi = np.array([w[0] - 1 for w in windows]), np.array([w[1] for w in windows])
         self._lo, self._hi, self._len = lo, hi, (hi - lo).astype(float)[:, None]
         self._counts = np.arange(N + 1)                         # ring positions of the prefix sums (shift)
-        self.count, self._quiet = 0, 0
+        self.count, self._quiet, self.active = 0, 0, False
         self.reference_torque = np.zeros(n)   # (n,) tau_ref at the last detection (the torque before the change)
         self._status, self._evaluated = None, 0  # the last evaluation (see status) and its sample count
         self._frozen = None                      # (raw, prefix) as they were at that evaluation, if shifted since
@@ -200,6 +201,8 @@ class Detector:
             # mean over a window of ||tau - tau_ref||^2 = mean ||tau||^2 - 2 tau_ref . mean tau + ||tau_ref||^2
             s_end, s_ref = (w[0] - 2.0 * w[T] @ tau_ref + tau_ref @ tau_ref for w in (end, ref))
             rapid = abs(s_end - s_ref)
+        if not full:
+            self.active = bool(rapid > s.activation_threshold)   # a change in the window (it may yet settle)
         if not full and rapid <= s.activation_threshold:
             return False                                   # the common case at 1 kHz: nothing changed
         means = (P[(k - N + self._hi) % (N + 1)] - P[(k - N + self._lo) % (N + 1)]) / self._len   # (W, D)

@@ -49,8 +49,9 @@ class RME(Streaming):
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta, self._phi = np.zeros(4), np.zeros(4)   # the estimate compensated; its phi = (m, m r) (1 kHz loop)
         self._pending = None                           # (sample index when it applies, Estimate)
-        self._refine, self._still, self._calm = None, 0, 0   # a pending estimate at rest; samples the arm has been
-                                                       #   still, and slower than monitor_speed
+        self._refine, self._still, self._calm, self._slow = None, 0, 0, 0   # a pending estimate at rest; samples
+                                                       #   the arm has been still, slower than monitor_speed, than
+                                                       #   monitor_slow[0]
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
@@ -146,6 +147,7 @@ class RME(Streaming):
         speed = np.abs(dq).max()
         self._still = self._still + 1 if speed < s.rest_speed else 0
         self._calm = self._calm + 1 if speed < s.monitor_speed else 0
+        self._slow = self._slow + 1 if speed < s.monitor_slow[0] else 0
         if self._job is not None and self._job[2] < self._k:           # polled from the next sample on
             if self._job[3]:                           # received on the sample before: judged now
                 (future, request, *_), self._job = self._job, None
@@ -160,8 +162,9 @@ class RME(Streaming):
                 self._on_rest(J)
             elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
-        elif s.monitor and idle and self._calm >= s.monitor_window and self._k % 10 == 0:
-            self._check_consistency(Y, J)
+        elif s.monitor and idle and self._k % 10 == 0 and (self._calm >= s.monitor_window or (
+                self._slow >= s.window and not self.detector.active)):   # a change in the detector's window is its
+            self._check_consistency(Y, J, moving=self._calm < s.monitor_window)
         if self._pending is not None and self._k >= self._pending[0]:
             self._apply(*self._pending[1:], Y, J)
             tau_mm = Y @ self._phi
@@ -183,7 +186,7 @@ class RME(Streaming):
         self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
         self._r -= d                                                   # the arm is near this pose over the buffer
         e.applied = self._k / self.settings.rate
-        self._pending, self._still, self._calm, self._held = None, 0, 0, None   # the arm answers: wait for rest
+        self._pending, self._still, self._calm, self._slow, self._held = None, 0, 0, 0, None   # the arm answers: wait for rest
 
     def _buffer(self):
         """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""

@@ -39,6 +39,10 @@ class RMESettings:
                                    #   sensor bias (a few tenths of a Nm per joint) but a change missed (e.g. in a push)
     monitor_speed: float = 0.02    # rad/s: every joint slower than this counts as calm for the monitor (friction
                                    #   torque then stays below about 0.05 Nm on the Panda, Gaz et al. 2019)
+    monitor_slow: tuple = (0.1, 0.6)   # (rad/s, Nm) ours: the monitor also checks an arm slower than this that is not
+                                   #   yet calm (returning after a push: 0.5-1 s sooner), for a payload-like level this
+                                   #   far from the one explained there (friction leaves up to 0.4 Nm at 0.1 rad/s);
+                                   #   refined at rest (0 rad/s: off)
     first_explained: float = 0.97  # the monitor's gate at the first rest, against no payload at all: real loads
                                    #   explain 0.97-1.0 there, the realistic sensor's bias alone about 0.5
     pose_tolerance: float = 0.3    # rad on every joint: within this of the pose where a level was explained, that level
@@ -71,6 +75,10 @@ class RMESettings:
                   ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
                   ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
                   ("monitor_far", self.monitor_far, self.monitor_far > self.monitor_threshold, "a torque > the threshold"),
+                  ("monitor_slow", self.monitor_slow, np.shape(self.monitor_slow) == (2,) and all(
+                      isinstance(x, (int, float)) and 0 <= x < np.inf for x in self.monitor_slow)
+                   and self.monitor_slow[1] > self.monitor_threshold,
+                   "(speed, level): a finite speed >= 0 rad/s and a finite torque > monitor_threshold Nm"),
                   ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
                    f"{self.window}..{keep} samples"),
                   ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),

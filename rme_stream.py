@@ -6,17 +6,18 @@ from __future__ import annotations
 import numpy as np
 
 import vi
-from detector import payload_like, safe_theta, steady_prefix, through_flange
+from detector import PAYLOAD_SIDE, payload_like, safe_theta, steady_prefix, through_flange
 
 
 class Streaming:
     """Mixed into rme.RME, whose state (rings, levels, the compensated estimate) these methods read and set; each
     estimate they start goes through RME._change."""
 
-    def _payload_like(self, d, gate, YJ, mass=None) -> bool:
+    def _payload_like(self, d, gate, YJ, mass=None, side=PAYLOAD_SIDE) -> bool:
         """detector.payload_like for a residual change d (n,) at a pose with payload regressor and Jacobian YJ, from
         the payload mass compensated (now)."""
-        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1], 1.2 * self.settings.max_mass)
+        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1], 1.2 * self.settings.max_mass,
+                            side)
 
     def _on_detection(self, asked=None):
         """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
@@ -100,21 +101,36 @@ class Streaming:
         r, s = held["resume"], self.settings
         return None if r is None else dict(r, deadline=self._k + int(s.refine_within * s.rate))
 
-    def _check_consistency(self, Y, J):
+    def _check_consistency(self, Y, J, moving=False):
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
         the level explained before at this pose. The very first level is estimated against no payload at all (RME
         assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
         taken as explained, unless it is monitor_far from the nearest level known (detector.Levels.judge). Y, J: the
-        payload regressor and Jacobian of the current sample (update's), where a payload is tested."""
+        payload regressor and Jacobian of the current sample (update's), where a payload is tested.
+        moving: the arm is slower than monitor_slow[0] but not calm (returning after a push, say): the level over the
+        last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] from the
+        level explained at this pose and off the flange's line (a press is judged at rest); nothing else is kept
+        (friction still holds a few tenths of a Nm), and the estimate is refined once the arm rests."""
         s = self.settings
-        last = (self._k - s.monitor_window + np.arange(s.monitor_window)) % len(self._r)   # no reorder, no correction
-        level, recent = self._r[last].mean(axis=0), self._r[last[-(s.monitor_window // 3):]].mean(axis=0)
+        span = s.window if moving else s.monitor_window
+        last = (self._k - span + np.arange(span)) % len(self._r)      # no reorder, no correction
+        level, recent = self._r[last].mean(axis=0), self._r[last[-(span // 3):]].mean(axis=0)
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(d, gate, (Y, J)),
-                                 (first_gate, s.min_explained), s.monitor_far)
+        if moving:
+            trusted, muted = self._lv.explained.at(q), self._lv.muted.at(q)
+            if (trusted is None or np.linalg.norm(level - trusted) <= s.monitor_slow[1]
+                    or (muted is not None and np.linalg.norm(level - muted) <= s.monitor_threshold)
+                    or through_flange(J, level - trusted, s.axial_radius[0])
+                    or not self._payload_like(level - trusted, s.min_explained, (Y, J))):
+                return
+            verdict = (trusted, "level")
+        else:                                    # the first level holds the sensor's unknown bias: its side force
+            side = PAYLOAD_SIDE if len(self._lv.explained) else (s.detector.side_force_limit, PAYLOAD_SIDE[1])   # too
+            verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(d, gate, (Y, J), side=side),
+                                     (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
             same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
@@ -124,8 +140,8 @@ class Streaming:
         if verdict is None:
             self._held = None
         held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
-        if verdict is None or verdict == "new" or self._held_back(level - verdict[0], J, self._k - s.monitor_window,
-                                                                  1):   # again at rest (see then)
+        if verdict is None or verdict == "new" or (not moving and self._held_back(level - verdict[0], J, self._k - span,
+                                                                                  1)):   # again at rest (see then)
             return
         (reference, kind), first = verdict, verdict[1] == "first"
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
@@ -144,14 +160,14 @@ class Streaming:
                 self.history.pop()                                     # (establishing it is not an estimate)
             elif kind == "far":
                 self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
-            elif not e.accepted:
+            elif not e.accepted and not moving:
                 self._lv.muted.put(q, level)
-            if e.accepted and held and s.refine:
+            if e.accepted and (held or moving) and s.refine:
                 self._refine = dict(bias=reference, known=None if kind != "level" else (q, reference), before=before,
                                     deadline=self._k + int(s.refine_within * s.rate))
         self._change(Q[-s.window:], TAU[-s.window:], reference, self.theta, "monitor", then, accept,
                      level=None if kind != "level" else (q, reference))
-        self._calm = 0
+        self._calm = self._slow = 0
 
     def _held_back(self, d, J, since, rest) -> bool:
         """Whether a payload-like change d (n,) waits: it adds a downward force through the flange (through_flange, J

@@ -269,3 +269,44 @@ def test_on_a_cycling_arm_a_centred_load_is_compensated_once_it_has_lasted_and_a
     assert len(applied) == 1 and 2.0 + 2.5 <= applied[0].t < 2.0 + 3.0, [(e.t, e.kind) for e in est.history]
     assert within(applied[0].mean[0], 1.0) and est.changes_held == 2
     assert np.abs(rec.theta_hat[rec.t >= 5.0, 0] - applied[0].mean[0]).max() < 1e-12   # the press: nothing applied
+
+
+def first_applied(est):
+    return min((e.applied for e in est.history if e.accepted and e.applied is not None), default=np.inf)
+
+
+def test_a_load_added_during_a_push_is_compensated_while_the_arm_returns():
+    """A person pushes the hand aside with 36 N for 1.5 s and a 1.5 kg load is hung on it meanwhile. After the
+    release the arm swings back for about a second; the monitor checks it once it is slower than 0.1 rad/s, not
+    only once calm, and compensates the load about 0.5 s sooner, then refines at rest. The control: the same run
+    with that check off (monitor_slow speed 0) compensates only once the arm is calm."""
+    from dataclasses import replace
+    release = 2.5
+    events = [Push(1.0, (35.0, -10.0, 0.0), release - 1.0, body="link7", offset=(0.0, 0.0, 0.107)),
+              PayloadChange(1.3, 1.5, (0.08, -0.03, 0.05))]
+    rec, est = hold(3, 5.0, events)
+    _, off = hold(3, 5.0, events, settings=replace(SYNC, monitor_slow=(0.0, 0.6)))
+    t, t_off = first_applied(est), first_applied(off)
+    assert t - release < 1.1 and t_off - t > 0.3, (t, t_off)
+    kinds = [e.kind for e in est.history if e.accepted]
+    assert kinds[0] == "monitor" and "at rest" in kinds, [(e.t, e.kind, e.mean.round(3)) for e in est.history]
+    assert abs(rec.theta_hat[-1, 0] - 1.5) < 0.05
+
+
+def test_a_load_on_a_resting_arm_is_the_detectors_to_estimate():
+    """The sag after a load is hung on a resting arm is slower than 0.1 rad/s: the check of a slow arm must leave
+    a change still in the detector's window to the detector, whose window is referred to the torque before it."""
+    rec, est = hold(7, 2.0, [PayloadChange(1.0, 0.6, (0.10, 0.05, 0.05))])
+    assert est.history and est.history[0].kind == "detection", [(e.t, e.kind, e.mean.round(3)) for e in est.history]
+    assert abs(est.history[0].mean[0] - 0.6) < 0.06
+
+
+def test_a_load_first_seen_at_the_first_rest_is_estimated_though_the_bias_bends_its_wrench():
+    """The reliability benchmark's episode of seed 100018: pushes keep the arm from resting until 1.06 kg hangs on
+    it, so the first level RME sees is the load's plus the sensor's unknown bias, judged against no payload. That
+    bias tilts the level's wrench by 2.1 N of side force for 7.8 N down, beyond the 0.5 N + 12 % a payload change
+    may carry; at the first level the side test allows App. A's 2.5 N instead. Without that the load was taken for
+    the bias and never compensated; with it, it is (read 12 % light: the bias is in the level)."""
+    from experiments.reliability import run_episode
+    ep = run_episode(100018, ReliabilityConfig())
+    assert 0.85 < ep["changes"][-1]["m_hat"] < 1.2, ep["changes"]

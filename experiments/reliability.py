@@ -102,10 +102,14 @@ def score(rec, ep, cfg: ReliabilityConfig, robot) -> dict:
         ok = abs(m_hat - m) <= tol
         right = np.flatnonzero((rec.t >= t) & (rec.t < t_next) & (np.abs(rec.theta_hat[:, 0] - m) <= tol))
         m_hat_before = float(rec.theta_hat[rec.at(t) - 1, 0])      # compensated just before the change
+        t_applied = applied[0].applied if applied else None        # the load can be told apart once the pushes over
+        free = max([t] + [p[0] + p[2] for p in ep["pushes"] if t_applied is not None and p[0] < t_applied   # it end
+                          and p[0] + p[2] > t - 0.5])
         changes.append(dict(t=t, m=m, before=before, m_hat_before=m_hat_before,
                             kind="removal" if m == 0 else "attachment", detected=bool(hits), settled=settled,
                             compensated=bool(ok), m_hat=float(m_hat),
-                            latency_ms=(1e3 * (applied[0].applied - t) if applied else None),
+                            latency_ms=(1e3 * (t_applied - t) if applied else None),
+                            after_push_ms=(1e3 * (t_applied - free) if applied and free > t else None),
                             right_ms=(1e3 * (rec.t[right[0]] - t) if len(right) else None),
                             pushed=any(abs(p[0] - t) < 0.5 or p[0] <= t <= p[0] + p[2] for p in ep["pushes"])))
     err_mm = 1e3 * rec.ee_error
@@ -128,6 +132,7 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
     pick = lambda key, push_ok=True: [c[key] for c in ch if c[key] is not None and c["kind"] == "attachment"
                                       and (push_ok or not c["pushed"])]
     lat, quiet, right, right_quiet = pick("latency_ms"), pick("latency_ms", False), pick("right_ms"), pick("right_ms", False)
+    after = pick("after_push_ms")
     errs = np.array([e["final_error_mm"] for e in load_eps])
     return {
         "attachments_detected": share("attachment", "detected"),
@@ -139,6 +144,7 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
         "latency_ms_median": float(np.median(lat)) if lat else None,
         "latency_ms_p90": float(np.percentile(lat, 90)) if lat else None,
         "latency_ms_median_no_push": float(np.median(quiet)) if quiet else None,
+        "after_push_ms_median": float(np.median(after)) if after else None,
         "right_ms_median": float(np.median(right)) if right else None,
         "right_ms_median_no_push": float(np.median(right_quiet)) if right_quiet else None,
         "final_error_mm_median": float(np.median(errs)) if len(errs) else None,
@@ -192,6 +198,8 @@ def main(args):
     ms = lambda v: "-" if v is None else f"{v:.0f} ms"
     print(f"  load change -> compensation (attachments)  median {ms(s['latency_ms_median'])}, p90 "
           f"{ms(s['latency_ms_p90'])}; without a push within 0.5 s: median {ms(s['latency_ms_median_no_push'])}")
+    print(f"  end of the pushes over a change -> its compensation (attachments)  median "
+          f"{ms(s['after_push_ms_median'])}")
     print(f"  load change -> mass compensated within 10 % or 50 g (attachments)  median {ms(s['right_ms_median'])}; "
           f"without a push within 0.5 s: median {ms(s['right_ms_median_no_push'])}")
     print(f"  final ee error: median {s['final_error_mm_median']:.1f} mm; below 10 mm in "
