@@ -158,14 +158,18 @@ class FrankySimBackend(PylibfrankaBackend):
 
 class PandaPyBackend:
     """panda-python: libfranka.Robot.control(callback) owns the 1 kHz loop, so it runs in a thread and hands each
-    state to read() and takes the command from write() (a cycle without a command within 0.9 ms resends the last).
-    control=False (dry run) only reads states (Panda.get_state)."""
+    state to read() (the newest: one the loop has not taken is replaced) and sends the command write() gives for
+    that state; one the loop answers later than `timeout` (0.9 ms) gets the newest command written before, and a
+    command answering an older state is never taken for the answer to a newer one (the loop would stay a cycle
+    behind for good after a single late cycle).
+    control=False (dry run) only reads states (Panda.get_state). panda: a connected panda_py.Panda (or anything with
+    its get_robot() and get_state()) to use instead of connecting to ip."""
 
-    def __init__(self, ip: str, control: bool = True, timeout: float = 0.9e-3):
+    def __init__(self, ip: str, control: bool = True, timeout: float = 0.9e-3, panda=None):
         panda_py = _need("panda_py", "panda-py")
         from panda_py import libfranka
         try:
-            self.panda = panda_py.Panda(ip)
+            self.panda = panda_py.Panda(ip) if panda is None else panda
             self.robot = self.panda.get_robot()
             self.initial = _state_of(self.panda.get_state(), 1e-3)     # the state before control starts
         except Exception as err:
@@ -174,18 +178,27 @@ class PandaPyBackend:
         self._lf, self._timeout, self._control = libfranka, timeout, control
         self._states, self._cmds = queue.Queue(maxsize=1), queue.Queue(maxsize=1)
         self._last, self._done, self._error = [0.0] * 7, threading.Event(), None
+        self._seq, self._read = 0, 0                   # states sent by the callback; the one the loop read last
         if control:
             self._thread = threading.Thread(target=self._run, daemon=True)
             self._thread.start()
 
     def _run(self):
         def callback(state, duration):
-            if not self._states.full():
-                self._states.put_nowait(_state_of(state, duration.to_sec()))
+            self._seq += 1
+            seq, deadline = self._seq, time.perf_counter() + self._timeout
             try:
-                self._last = self._cmds.get(timeout=self._timeout)
+                self._states.get_nowait()              # a state the loop never took: the newer one replaces it
             except queue.Empty:
                 pass
+            self._states.put_nowait((seq, _state_of(state, duration.to_sec())))
+            while True:                                # the answer to this state, or the newest one by the deadline
+                try:
+                    answered, self._last = self._cmds.get(timeout=max(deadline - time.perf_counter(), 0.0))
+                except queue.Empty:
+                    break
+                if answered >= seq:
+                    break
             t = self._lf.Torques(self._last)
             t.motion_finished = self._done.is_set()
             return t
@@ -202,7 +215,8 @@ class PandaPyBackend:
             if self._error is not None or (self._done.is_set() and self._states.empty()):
                 raise RuntimeError(f"panda-python control ended: {self._error}")
             try:
-                return self._states.get(timeout=0.1)
+                self._read, s = self._states.get(timeout=0.1)
+                return s
             except queue.Empty:
                 continue
 
@@ -212,7 +226,7 @@ class PandaPyBackend:
                 self._cmds.get_nowait()                # a command the callback never took: replaced
             except queue.Empty:
                 pass
-            self._cmds.put_nowait([float(x) for x in cmd])
+            self._cmds.put_nowait((self._read, [float(x) for x in cmd]))   # the answer to the state last read
 
     def stop(self):
         self._done.set()
