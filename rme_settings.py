@@ -75,10 +75,13 @@ class RMESettings:
                   ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
                   ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
                   ("monitor_far", self.monitor_far, self.monitor_far > self.monitor_threshold, "a torque > the threshold"),
-                  ("monitor_slow", self.monitor_slow, np.shape(self.monitor_slow) == (2,) and all(
-                      isinstance(x, (int, float)) and 0 <= x < np.inf for x in self.monitor_slow)
+                  ("monitor_slow", self.monitor_slow, isinstance(self.monitor_slow, tuple) and len(self.monitor_slow)
+                   == 2 and all(isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+                                and 0 <= x < np.inf for x in self.monitor_slow)
+                   and (self.monitor_slow[0] == 0 or self.monitor_slow[0] > self.monitor_speed)
                    and self.monitor_slow[1] > self.monitor_threshold,
-                   "(speed, level): a finite speed >= 0 rad/s and a finite torque > monitor_threshold Nm"),
+                   "(speed, level): a speed of 0 (off) or above monitor_speed rad/s and a finite torque above "
+                   "monitor_threshold Nm"),
                   ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
                    f"{self.window}..{keep} samples"),
                   ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),

@@ -109,8 +109,9 @@ class Streaming:
         payload regressor and Jacobian of the current sample (update's), where a payload is tested.
         moving: the arm is slower than monitor_slow[0] but not calm (returning after a push, say): the level over the
         last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] from the
-        level explained at this pose and off the flange's line (a press is judged at rest); nothing else is kept
-        (friction still holds a few tenths of a Nm), and the estimate is refined once the arm rests."""
+        level explained at this pose and off the flange's line (a press is judged at rest), and refined once the arm
+        rests. Nothing is kept from such a check (friction still holds a few tenths of a Nm) but a level whose estimate
+        was refused: not tried again while it stays (the check at rest judges it once the arm is calm)."""
         s = self.settings
         span = s.window if moving else s.monitor_window
         last = (self._k - span + np.arange(span)) % len(self._r)      # no reorder, no correction
@@ -120,9 +121,11 @@ class Streaming:
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
         if moving:
-            trusted, muted = self._lv.explained.at(q), self._lv.muted.at(q)
+            trusted, muted, tried = self._lv.explained.at(q), self._lv.muted.at(q), self._slow_rejected
+            near = lambda ql: ql is not None and (np.abs(q - ql[0]).max() <= s.pose_tolerance and
+                                                  np.linalg.norm(level - ql[1]) <= s.monitor_threshold)
             if (trusted is None or np.linalg.norm(level - trusted) <= s.monitor_slow[1]
-                    or (muted is not None and np.linalg.norm(level - muted) <= s.monitor_threshold)
+                    or (muted is not None and np.linalg.norm(level - muted) <= s.monitor_threshold) or near(tried)
                     or through_flange(J, level - trusted, s.axial_radius[0])
                     or not self._payload_like(level - trusted, s.min_explained, (Y, J))):
                 return
@@ -136,7 +139,7 @@ class Streaming:
             same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
             self._change(Q[-s.window:], TAU[-s.window:], self._evidence[0][2], self.theta, "accumulated",
                          self._leaves(q, level), same, evidence=self._evidence)   # referred like the first window
-            self._calm = 0
+            self._calm = self._slow = 0
         if verdict is None:
             self._held = None
         held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
@@ -162,12 +165,16 @@ class Streaming:
                 self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
             elif not e.accepted and not moving:
                 self._lv.muted.put(q, level)
+            elif not e.accepted:                                       # not again while it stays (the check at
+                self._slow_rejected = (q, level)                       #   rest still judges it once calm)
             if e.accepted and (held or moving) and s.refine:
                 self._refine = dict(bias=reference, known=None if kind != "level" else (q, reference), before=before,
                                     deadline=self._k + int(s.refine_within * s.rate))
         self._change(Q[-s.window:], TAU[-s.window:], reference, self.theta, "monitor", then, accept,
                      level=None if kind != "level" else (q, reference))
-        self._calm = self._slow = 0
+        self._slow = 0
+        if not moving:
+            self._calm = 0
 
     def _held_back(self, d, J, since, rest) -> bool:
         """Whether a payload-like change d (n,) waits: it adds a downward force through the flange (through_flange, J

@@ -137,6 +137,8 @@ def test_panda_py_callback_hands_each_state_to_the_loop_and_sends_its_command():
         last = tau[0]                                                  # (or one the loop wrote late)
     assert out[-1][2] is True                                          # stop(): motion_finished on the next cycle
     assert on_time >= 0.5 * (len(out) - 1), on_time                    # the loop answers within 0.9 ms
+    waits = sorted(dt for i, tau, _, dt in out[:-1] if tau[0] == i)    # and the callback returns once it has its
+    assert waits[len(waits) // 2] < 0.45e-3, waits[len(waits) // 2]   # answer, not at its deadline
     assert res["dry"] == 0.0                                           # control=False: Panda.get_state()
 
 
@@ -149,8 +151,8 @@ def test_panda_py_control_error_reaches_the_loop():
 
 def test_panda_py_callback_never_waits_for_a_late_loop():
     """A loop that misses its deadline by 50 ms every 50th state: the callback does not wait for it (0.9 ms), it
-    sends the last command again; the late command is sent once it comes, and no command is ever one the loop did
-    not write, nor older than one already sent. Then the loop answers the newest state, on time again: a command
+    sends the last command again (the late one goes out only if no newer answer replaced it first), and no command
+    is ever one the loop did not write, nor older than one already sent. Then the loop answers the newest state, on time again: a command
     for an older state found waiting is not taken for the answer (else it would stay a cycle behind for good)."""
     res = run_python(HAND_OFF.format(cycles=1000, fail=0, late=50, by=0.05, after=0))
     read, out = res["read"], res["out"]

@@ -212,8 +212,10 @@ def test_from_xml_works_on_a_three_joint_planar_arm(tmp_path):
     (lambda: RMESettings(axial_radius=0.02), r"settings.axial_radius: expected \(while moving, at rest\)"),
     (lambda: RMESettings(axial_radius=(0.04, np.nan)), r"settings.axial_radius: expected .* two finite distances"),
     (lambda: RMESettings(axial_radius=None), r"settings.axial_radius: expected"),
-    (lambda: RMESettings(monitor_slow=(0.1, 0.2)), r"settings.monitor_slow: expected .* torque > monitor_threshold"),
+    (lambda: RMESettings(monitor_slow=(0.1, 0.2)), r"settings.monitor_slow: expected .* torque above monitor_thre"),
     (lambda: RMESettings(monitor_slow=(np.nan, 1.0)), r"settings.monitor_slow: expected \(speed, level\)"),
+    (lambda: RMESettings(monitor_slow=[0.1, 0.6]), r"settings.monitor_slow: expected \(speed, level\)"),
+    (lambda: RMESettings(monitor_slow=(0.01, 0.6)), r"settings.monitor_slow: expected .* above monitor_speed"),
 ])
 def test_bad_input_raises_value_error_naming_the_argument(call, match):
     with pytest.raises(ValueError, match=match):

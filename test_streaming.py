@@ -310,3 +310,17 @@ def test_a_load_first_seen_at_the_first_rest_is_estimated_though_the_bias_bends_
     from experiments.reliability import run_episode
     ep = run_episode(100018, ReliabilityConfig())
     assert 0.85 < ep["changes"][-1]["m_hat"] < 1.2, ep["changes"]
+
+
+def test_a_level_refused_on_a_slow_arm_is_not_estimated_again_and_again():
+    """A person presses down 20 N on a handle 0.45 m out from the hand for 4.5 s: to the torques a payload with its
+    CoM 0.45 m out, beyond max_com, so every estimate of it is refused. The arm, held aside, creeps slower than
+    0.1 rad/s; the check of a slow arm tries that level once, not every 200 ms while it stays (the control: the
+    same run with that check off)."""
+    from dataclasses import replace
+    push = [Push(1.0, (0.0, 0.0, -20.0), 4.5, body="link7", offset=(0.45, 0.0, 0.107))]
+    _, est = hold(3, 6.0, push)
+    _, off = hold(3, 6.0, push, settings=replace(SYNC, monitor_slow=(0.0, 0.6)))
+    refused = [e for e in est.history if not e.accepted]
+    assert not any(e.accepted for e in est.history)
+    assert len(refused) <= len(off.history) + 1, [(round(e.t, 2), e.kind, e.reason) for e in est.history]
