@@ -44,7 +44,7 @@ class RME(Streaming):
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
         self.changes_not_payload, self.changes_held = 0, 0   # detections no payload explains (not estimated); held
         self._held = None                              # the sample since which a change has been held (_held_back)
-        self._slow_rejected = None                     # (q, level) a check of a slow arm estimated in vain
+        self._slow_rejected = LevelMap(settings.pose_tolerance, size=1)   # the level a slow arm's check estimated in vain
         self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
@@ -188,7 +188,7 @@ class RME(Streaming):
         self._r -= d                                                   # the arm is near this pose over the buffer
         e.applied = self._k / self.settings.rate
         self._pending, self._still, self._calm, self._slow, self._held = None, 0, 0, 0, None   # the arm answers: wait for rest
-        self._slow_rejected = None
+        self._slow_rejected = LevelMap(self.settings.pose_tolerance, size=1)
 
     def _buffer(self):
         """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""

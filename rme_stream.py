@@ -121,11 +121,10 @@ class Streaming:
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
         if moving:
-            trusted, muted, tried = self._lv.explained.at(q), self._lv.muted.at(q), self._slow_rejected
-            near = lambda ql: ql is not None and (np.abs(q - ql[0]).max() <= s.pose_tolerance and
-                                                  np.linalg.norm(level - ql[1]) <= s.monitor_threshold)
+            trusted = self._lv.explained.at(q)
+            same = lambda b: b is not None and np.linalg.norm(level - b) <= s.monitor_threshold
             if (trusted is None or np.linalg.norm(level - trusted) <= s.monitor_slow[1]
-                    or (muted is not None and np.linalg.norm(level - muted) <= s.monitor_threshold) or near(tried)
+                    or same(self._lv.muted.at(q)) or same(self._slow_rejected.at(q))
                     or through_flange(J, level - trusted, s.axial_radius[0])
                     or not self._payload_like(level - trusted, s.min_explained, (Y, J))):
                 return
@@ -166,7 +165,7 @@ class Streaming:
             elif not e.accepted and not moving:
                 self._lv.muted.put(q, level)
             elif not e.accepted:                                       # not again while it stays (the check at
-                self._slow_rejected = (q, level)                       #   rest still judges it once calm)
+                self._slow_rejected.put(q, level)                      #   rest still judges it once calm)
             if e.accepted and (held or moving) and s.refine:
                 self._refine = dict(bias=reference, known=None if kind != "level" else (q, reference), before=before,
                                     deadline=self._k + int(s.refine_within * s.rate))

@@ -103,9 +103,9 @@ def score(rec, ep, cfg: ReliabilityConfig, robot) -> dict:
         right = np.flatnonzero((rec.t >= t) & (rec.t < t_next) & (np.abs(rec.theta_hat[:, 0] - m) <= tol))
         m_hat_before = float(rec.theta_hat[rec.at(t) - 1, 0])      # compensated just before the change
         t_applied = applied[0].applied if applied else None        # the pushes over the change (from 0.5 s before
-        free = max([t] + [p[0] + p[2] for p in ep["pushes"] if t_applied is not None and p[0] < t_applied   # it)
-                          and t - 0.5 < p[0] + p[2] <= t_applied])  # that ended before its compensation: the load
-                                                                    # can be told apart from then on
+        free = max([t] + [p[0] + p[2] for p in ep["pushes"] if p[0] < t_applied and t - 0.5 < p[0] + p[2] <= t_applied]
+                   ) if applied else t             # it) that ended before its compensation: the load can be told apart
+                                                   # from then on
         changes.append(dict(t=t, m=m, before=before, m_hat_before=m_hat_before,
                             kind="removal" if m == 0 else "attachment", detected=bool(hits), settled=settled,
                             compensated=bool(ok), m_hat=float(m_hat),
