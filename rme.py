@@ -163,6 +163,9 @@ class RME(Streaming):
                 self._on_rest(J)
             elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
+            elif s.monitor and not r.get("held") and self._k % 10 == 0 and self._slow >= s.window \
+                    and self._calm < s.monitor_window and not self.detector.active:
+                self._check_consistency(Y, J, moving=True)   # a change while the arm still creeps after the last one
         elif s.monitor and idle and self._k % 10 == 0 and (self._calm >= s.monitor_window or (
                 self._slow >= s.window and not self.detector.active)):   # a change in the detector's window is its
             self._check_consistency(Y, J, moving=self._calm < s.monitor_window)

@@ -324,3 +324,14 @@ def test_a_level_refused_on_a_slow_arm_is_not_estimated_again_and_again():
     refused = [e for e in est.history if not e.accepted]
     assert not any(e.accepted for e in est.history)
     assert len(refused) <= len(off.history) + 1, [(round(e.t, 2), e.kind, e.reason) for e in est.history]
+
+
+def test_a_change_while_the_arm_still_creeps_after_the_last_estimate_is_not_left_until_it_rests():
+    """The reliability benchmark's episode of seed 86: 2.73 kg is compensated at once, and the heavily loaded arm
+    then creeps back at 0.04 rad/s, so the estimate at rest it scheduled stays due. At 3.71 s the load drops to
+    1.16 kg while a person pushes for 0.29 s; the detector's window holds the push, so it refuses the change. The
+    check of a slow arm runs while such an estimate is due too: the new load is compensated within a second (1.5 s
+    when it waited for the arm to be still)."""
+    from experiments.reliability import run_episode
+    change = run_episode(86, ReliabilityConfig())["changes"][1]
+    assert change["compensated"] and change["latency_ms"] < 1000, change
