@@ -82,8 +82,8 @@ def map_error(plant: Plant, model: Model, q) -> np.ndarray:
 
 
 def add_map_column(res: dict, trial, settings, holds: HoldsConfig = HoldsConfig()) -> dict:
-    """explore.explore_table's result res for Table 5's six payloads, each trial run again by trial(theta, seed,
-    settings=, preset=, correction=) (explore.explore_trial) with RME(correction=the plant's map), the map calibrated
+    """explore_demo.explore_table's result res for Table 5's six payloads, each trial run again by trial(theta, seed,
+    settings=, preset=, correction=) (explore_demo.explore_trial) with RME(correction=the plant's map), the map calibrated
     first on a load-free hold log of the same plant seed; settings: the table's ExploreSettings (its offset prior
     replaced by RME's own). Adds rows[i]["map"] {before, after, status} and map_{before,after}_mean_abs_error."""
     mapped = dataclasses.replace(settings, offset_std=None)      # the map leaves RME's own offset prior

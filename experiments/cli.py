@@ -40,7 +40,7 @@ DEMOS = {
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
-                "experiments.explore:explore", ("seed", "json")),
+                "experiments.explore_demo:explore", ("seed", "json")),
     "inertia": ("the payload's inertia from motion and its compensation on a wrist-turning limit cycle (about 1 min)",
                 "experiments.inertia_demo:inertia_demo", ("seed", "json")),
 }

@@ -8,7 +8,8 @@ import pytest
 from diagnosis.excite import HoldsConfig
 from dynamics import Q_READY
 from experiments.bias_map import calibrate, trial_plant
-from experiments.explore import (ExploreSettings, Explorer, explore_trial, limits_touched, storage_check)
+from experiments.explore import ExploreSettings, Explorer
+from experiments.explore_demo import explore_trial, limits_touched, storage_check
 from experiments.runner import Push
 
 THETA = np.array([0.9, 0.05, -0.03, 0.13])          # Table 5 payload 4
