@@ -34,6 +34,12 @@ class ExploreSettings:
     rest_before: float = 0.25      # s the arm must have been still, with the estimate applied, before exploring
     push_threshold: float = 1.5    # Nm: |tau_ext - the torque the estimate predicts| beyond this abandons the
     #                                exploration (a person); moving the wrist at 1.2 rad/s leaves < 0.6 Nm (measured)
+    reference_tilt: bool = False   # once, with nothing compensated and the arm still, make the same tilt load-free
+    #                                and keep how tau_ext changed over it (the sensor's pose bias, the links' model
+    #                                errors); a later exploration from within reference_tolerance of that start pose
+    #                                refers its tilted window to it and keeps RME's offset prior: a 2 s calibration
+    #                                of this one motion, done by the explorer itself
+    reference_tolerance: float = 0.05   # rad, on every joint
 
     def __post_init__(self):
         a = np.asarray(self.axis, dtype=float)
@@ -47,6 +53,8 @@ class ExploreSettings:
                   ("reference", isinstance(self.reference, int) and 1 <= self.reference <= 2000, "1..2000 samples"),
                   ("still_speed", self.still_speed > 0, "a speed > 0 rad/s"),
                   ("push_threshold", self.push_threshold > 0, "a torque > 0 Nm"),
+                  ("reference_tilt", isinstance(self.reference_tilt, bool), "True or False"),
+                  ("reference_tolerance", self.reference_tolerance > 0, "an angle > 0 rad"),
                   ("pivot", self.pivot in ("wrist", "ee"), "'wrist' or 'ee'"),
                   ("offset_std", self.offset_std is None or self.offset_std >= 0, "None or a torque >= 0 Nm")]
         for name, ok, want in checks:
@@ -102,14 +110,17 @@ class MovingAttractor:
 
 @dataclass
 class Exploration:
-    """One exploration: times [s] (start: the target starts moving; end: it is back), status ("applied" or
-    "abandoned: <why>"), the estimate it started from and the one from both poses (or None)."""
+    """One exploration: times [s] (start: the target starts moving; end: it is back), status ("applied",
+    "recorded" (a reference tilt) or "abandoned: <why>"), the estimate it started from and the one from both poses
+    (or None)."""
     start: float
     status: str = "running"
     end: float = float("nan")
     before: object = None          # rme.Estimate
     after: object = None           # rme.Estimate from both windows, or None
     deviation: float = 0.0         # Nm, largest |tau_ext - predicted| seen while exploring
+    reference: bool = False        # the load-free reference tilt (ExploreSettings.reference_tilt): no estimate
+    referred: bool = False         # its tilted window was referred to a reference tilt
     angle: list = field(default_factory=list)   # (t, target angle) of every step while exploring
 
 
@@ -139,6 +150,7 @@ class Explorer:
         self._q, self._dq, self._tau = (np.zeros((keep, self.robot.n)) for _ in range(3))
         self._k, self._still, self._seen, self._phase = 0, 0, 0, None
         self._theta, self._from, self._limit = None, None, self.robot.torque_limits()
+        self.references = []       # (start pose q (n,), load-free change of tau_ext over the tilt (n,)), newest last
         return self
 
     # --- what the runner reads ---------------------------------------------------------------------------
@@ -173,6 +185,12 @@ class Explorer:
     def _maybe_start(self):
         """Explore after an accepted estimate that RME has applied and will not refine, once the arm is still."""
         s, rs, hist = self.settings, self.rme.settings, self.rme.history
+        due = hist and hist[-1].accepted and not np.isfinite(hist[-1].applied)    # an estimate about to apply
+        if s.reference_tilt and self.policy.angle == 0.0 and float(self.rme.theta[0]) == 0.0 and not due and \
+                not self.rme.detector.active and self._still >= max(s.window, int(s.rest_before * rs.rate)):
+            q, _, dq = self._window(s.window)
+            if np.abs(dq).max() < rs.rest_speed and self._reference_at(q.mean(axis=0)) is None:   # still: no friction
+                return self._start(Exploration(self.t, reference=True), np.zeros(4))
         if len(hist) == self._seen or self.policy.angle != 0.0:
             return
         e = hist[-1]
@@ -188,11 +206,28 @@ class Explorer:
             return
         x = Exploration(self.t, before=e)
         x.base, x.base_q, x.base_dq = self._baseline(e)
-        x.windows = [self._window(s.window)]
-        x.theta0, x.t0, x.n_history = e.mean.copy(), self.t, len(hist)
-        self.policy.move(0.0, s.axis, self._pivot(x.windows[0][0].mean(axis=0)))
+        self._start(x, e.mean)
+
+    def _start(self, x, theta0):
+        """Window a now, then the target starts to turn; theta0 (4,): the payload the deviation test expects."""
+        x.windows = [self._window(self.settings.window)]
+        if x.reference:                                               # load-free: the level at the start pose
+            x.base, x.base_q, x.base_dq = x.windows[0][1].mean(axis=0), x.windows[0][0], x.windows[0][2]
+        x.theta0, x.t0, x.n_history = np.array(theta0, dtype=float), self.t, len(self.rme.history)
+        self.policy.move(0.0, self.settings.axis, self._pivot(x.windows[0][0].mean(axis=0)))
         self.log.append(x)
         self._phase, self._x = "out", x
+
+    def _reference_at(self, q):
+        """The load-free change over the tilt recorded from a start pose within reference_tolerance of q, or None."""
+        near = [d for q0, d in self.references if np.abs(q0 - q).max() <= self.settings.reference_tolerance]
+        return near[-1] if near else None
+
+    def _level(self, window):
+        """Mean tau_ext of a window (q, tau, dq), less RME's correction (the level RME's own windows see)."""
+        q, tau, dq = window
+        c = self.rme.correction
+        return (tau if c is None else tau - c.correction(q, dq)).mean(axis=0)
 
     def _pivot(self, q):
         return self._pivot_of(self.robot, q, self.settings.pivot, self.policy.base.p_star)
@@ -245,25 +280,35 @@ class Explorer:
             self.policy.move(angle)
             if t >= T + s.settle and self._still >= s.window:
                 x.windows.append(self._window(s.window))
-                self._estimate(x)
+                if x.reference:
+                    a, b = x.windows
+                    self.references.append((a[0].mean(axis=0), self._level(b) - self._level(a)))
+                    self._return(x, "returning")
+                else:
+                    self._estimate(x)
         elif self._phase == "back":
             angle, T = s.profile(t - x.t_back)
             self.policy.move(x.angle_back - angle * x.angle_back / s.tilt)
             if t - x.t_back >= T:
                 self.policy.move(0.0)
                 self._phase, x.end = None, self.t
-                x.status = "applied" if x.status == "returning" else x.status
+                x.status = ("recorded" if x.reference else "applied") if x.status == "returning" else x.status
         x.angle.append((self.t, self.policy.angle))
 
     def _estimate(self, x):
         """One posterior from the window at the start pose and the one at the tilted pose, each referred to the
-        baseline, each with its own marginalised offset (the load-free level at the tilted pose is not known)."""
+        baseline, each with its own marginalised offset: the load-free level at the tilted pose is not known, unless
+        a reference tilt from this start pose recorded how it changes (then RME's own offset prior)."""
         qs, taus, dqs = zip(*x.windows)
         corr = self.rme.correction                # RME subtracts it from the windows: refer to the corrected level
         base = x.base if corr is None else x.base - corr.correction(x.base_q, x.base_dq).mean(axis=0)
         taus = [tau - base for tau in taus]
+        tilt = self._reference_at(qs[0].mean(axis=0))
+        if tilt is not None:                                         # what the tilt changes with no load on
+            taus[1] = taus[1] - tilt
+            x.referred = True
         rme = self.rme
-        if self.settings.offset_std is not None:                     # the same estimator, its offset prior changed
+        if self.settings.offset_std is not None and tilt is None:   # the same estimator, its offset prior changed
             rme = copy.copy(rme)
             rme.settings = dataclasses.replace(rme.settings, vi=dataclasses.replace(
                 rme.settings.vi, offset_std=self.settings.offset_std))

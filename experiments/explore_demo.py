@@ -100,19 +100,44 @@ def explore_table(seed=0, settings: ExploreSettings = ExploreSettings(), preset=
     return dict(rows=rows, **summary, settings=dataclasses.asdict(settings), preset=preset, seed=seed)
 
 
+def add_reference_column(res: dict, settings: ExploreSettings, t_attach=4.0, seconds=8.5) -> dict:
+    """explore_table's result res, each trial run again with settings.reference_tilt: the explorer first tilts
+    load-free (from 0.25 s on, once the arm is still), and the payload is attached at t_attach, once the arm is back
+    and still. Adds rows[i]["ref"] {before, after, status, seconds, reference: (start, end) of the reference tilt}
+    and ref_{before,after}_mean_abs_error."""
+    referring = dataclasses.replace(settings, reference_tilt=True)
+    for i, row in enumerate(res["rows"]):
+        s, theta = 1000 * (i + 1) + res["seed"], np.array(row["truth"])
+        rec, _ = explore_trial(theta, s, settings=referring, preset=res["preset"], t_attach=t_attach, seconds=seconds)
+        ref = [x for x in rec.exploration if x.reference and x.status == "recorded"]
+        x = next((x for x in rec.exploration if not x.reference), None)
+        row["ref"] = dict(status="no estimate at rest" if x is None else x.status,
+                          before=None if x is None else x.before.mean.tolist(),
+                          after=None if x is None or x.after is None or not x.referred else x.after.mean.tolist(),
+                          seconds=None if x is None else float(x.end - x.start),
+                          reference=[float(ref[0].start), float(ref[0].end)] if ref else None)
+    for key in ("before", "after"):
+        err = [[abs(a - b) for a, b in zip(r["ref"][key], r["truth"])] for r in res["rows"] if r["ref"][key]]
+        res[f"ref_{key}_mean_abs_error"] = np.mean(err, axis=0).tolist() if err else [None] * 4
+    return res
+
+
 def explore(args):
     """`python sim.py explore [--seed S] [--json]`: the exploration on Table 5's payloads at the ready pose, without
-    and with a bias map calibrated on a load-free hold log of each plant (experiments/bias_map.py)."""
+    and with a bias map calibrated on a load-free hold log of each plant (experiments/bias_map.py), and with the
+    explorer's own load-free reference tilt instead of a map."""
     import json
     from experiments.bias_map import add_map_column
     res = add_map_column(explore_table(seed=args.seed), explore_trial, ExploreSettings())
+    res = add_reference_column(res, ExploreSettings())
     if args.json:
         return print(json.dumps(res)) or res
     s = ExploreSettings()
     print(f"Active exploration for the CoM along gravity: realistic plant, ready pose, seed {args.seed}; tilt "
           f"{math.degrees(s.tilt):.0f} deg about world {tuple(s.axis)} through the {s.pivot}, peak {s.speed} rad/s.\n"
-          "truth (m, rx, ry, rz) | before: at rest | after: both poses | map: both poses, RME(correction=bias map)"
-          "\n     |abs error| m [g], r [mm]   time [s]  limit touched  S rise [J]")
+          "truth (m, rx, ry, rz) | before: at rest | after: both poses | map: both poses, RME(correction=bias map) "
+          "| ref: both poses, no map, a load-free reference tilt first\n     |abs error| m [g], r [mm]   time [s]  "
+          "limit touched  S rise [J]")
     f = lambda v: " ".join(f"{x:6.3f}" for x in v)
     for r in res["rows"]:
         if r["before"] is None:
@@ -123,8 +148,10 @@ def explore(args):
               f"{f(r['after']) if r['after'] else r['status']:27s}   {e(r['after'])}   {r['seconds']:5.2f}   "
               f"{'yes' if r['touched'] else 'no':3s} (margin {r['joint_margin']:.2f} rad, |tau|/max "
               f"{r['torque_ratio']:.2f})  {r['storage']['max_rise']:.1e}\n     map    "
-              f"{f(r['map']['after']) if r['map']['after'] else r['map']['status']:27s}   {e(r['map']['after'])}")
+              f"{f(r['map']['after']) if r['map']['after'] else r['map']['status']:27s}   {e(r['map']['after'])}"
+              f"\n     ref    {f(r['ref']['after']) if r['ref']['after'] else r['ref']['status']:27s}   "
+              f"{e(r['ref']['after'])}")
     print("mean |error|      m [g]  rx [mm]  ry [mm]  rz [mm]")
-    for key in ("before", "after", "map_before", "map_after"):
+    for key in ("before", "after", "map_before", "map_after", "ref_before", "ref_after"):
         print(f"  {key:10s}     " + "  ".join(f"{1e3 * (x or np.nan):6.1f}" for x in res[f"{key}_mean_abs_error"]))
     return res
