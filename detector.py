@@ -10,6 +10,7 @@ import numpy as np
 
 from dynamics import pseudo_wrench
 
+ALGORITHM_1_CHECKS = ((431, 450), (351, 370), (271, 290))   # Alg. 1's stabilisation checks: the last 230 ms
 MAX_TORQUE = 1e4    # Nm: no joint torque sensor reads more; larger samples are refused (their squares would overflow
                     #   the running sums long before 1e154 Nm, and they are faults, not loads)
 
@@ -24,11 +25,14 @@ class DetectorSettings:
     stabilisation_relative: float = 0.03                # ours ("referred"): plus this share of the change's size
                                                         #   (a compliant arm settles slowly under a heavy load: its
                                                         #   drift stays above 0.2 Nm for seconds after 2.5 kg)
-    check_windows: tuple = ((431, 450), (351, 370), (271, 290))   # Alg. 1 "stabilization checks"
+    check_windows: tuple = ((431, 450), (391, 410), (351, 370))   # ours: Alg. 1's "stabilization checks"
+                                                        #   (ALGORITHM_1_CHECKS) over the last 150 ms, not 230
+                                                        #   (App. A: tuned to the task): loads compensated sooner
     end_window: tuple = (491, 500)                      # Alg. 1 "end stabilization"
     force_window: tuple = (451, 500)                    # Alg. 1 mean external force
     side_force_limit: float = 2.5                       # N, |F_x| and |F_y| below it: App. A
-    algorithm: str = "referred"                         # ours (see Detector); "as_printed": Alg. 1 verbatim
+    algorithm: str = "referred"                         # ours (see Detector); "as_printed" with
+                                                        #   check_windows=ALGORITHM_1_CHECKS: Alg. 1 verbatim
     reference_window: tuple = (1, 10)                   # ours ("referred"): the torque and force before the change
     settled_window: tuple = (11, 30)                    # ours ("referred"): must agree with reference_window
     refractory: int = 500                               # ours: samples after a detection before the next one

@@ -56,6 +56,13 @@ class RME(Streaming):
         self.history: list[Estimate] = []
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
+    @property
+    def settled(self) -> bool:
+        """Whether the stream has judged the first steady level it saw (the sensor's bias, or a load) and has no
+        estimate due, queued or in flight."""
+        return bool(len(self._lv.explained)) and self._pending is None and self._job is None and \
+            self._queued is None and self._steps is None and self._refine is None
+
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
         """Posterior of theta from a window q, tau_ext (T, n) (paper sign), T about 200 at 1 kHz; or from lists of

@@ -12,7 +12,8 @@ from detector import DetectorSettings
 
 @dataclass(frozen=True)
 class RMESettings:
-    window: int = 200              # samples of the estimation window: 200 ms at 1 kHz (Sec. 4, App. E)
+    window: int = 200              # samples of the estimation window: 200 ms at 1 kHz (Sec. 4, App. E); at a
+                                   #   detection at most detection_window (below)
     reference: int = 30            # samples at the start of the detector's buffer (which checks they precede the
                                    #   change) whose mean tau_ext the window is referred to, extended while the level
                                    #   holds (detector.steady_prefix) (ours: removes the pose-dependent bias)
@@ -90,10 +91,21 @@ class RMESettings:
                   ("axial_radius", self.axial_radius, np.shape(self.axial_radius) == (2,) and all(
                       isinstance(x, (int, float)) and 0 <= x < np.inf for x in self.axial_radius),
                    "(while moving, at rest): two finite distances >= 0 m"),
-                  ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)")]
+                  ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)"),
+                  ("detector.check_windows", self.detector.check_windows, self.detection_window >= 20,
+                   "an earliest check that leaves at least 20 samples after it (the detection's window)")]
         for name, value, ok, want in checks:
             if not ok or (isinstance(value, float) and np.isnan(value)):
                 raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
+
+
+    @property
+    def detection_window(self) -> int:
+        """Samples of the window estimated at a detection: the newest `window`, at most those from the detector's
+        earliest stabilisation check on, which it found settled after the change (150 by default; 200 with
+        detector.ALGORITHM_1_CHECKS). The estimates at rest and the monitor's take `window`."""
+        d = self.detector
+        return min(self.window, d.window + 1 - min(w[0] for w in d.check_windows))
 
 
 @dataclass

@@ -31,16 +31,16 @@ class Streaming:
 
     def _detection(self, asked):
         """_on_detection's steps (a generator: each yield hands the rest to the next sample)."""
-        s = self.settings
+        s, w = self.settings, self.settings.detection_window     # w: the samples the detector found settled
         Q, TAU, Rs = self._buffer()
         q_ref, before, asked = Q[:s.reference].mean(axis=0), self.theta.copy(), self._k if asked is None else asked
         held, pending = (self._refine, None) if (self._refine or {}).get("held") else (None, self._refine)
-        level = Rs[-s.window:].mean(axis=0)   # (pending: an estimate at rest is due: refer to before its change)
+        level = Rs[-w:].mean(axis=0)          # (pending: an estimate at rest is due: refer to before its change)
         if self._lv.undone(Q[-1], level):
             self._held, self._refine = None, pending if held is None else self._resumed(held)
             return                         # back to the level before a change that was no payload: its release
         yield                              # (with an executor each step costs 0.05-0.1 ms in a loop's cold caches)
-        steady = steady_prefix(Rs, s.reference, len(Rs) - s.window) if pending is None else 0
+        steady = steady_prefix(Rs, s.reference, len(Rs) - w) if pending is None else 0
         yield
         bias = pending["bias"] if pending is not None else self._lv.bias(Rs[:steady], q_ref)   # the level before,
         yield                                                                                   # as long as it holds
@@ -50,15 +50,15 @@ class Streaming:
             return                         # a push, a bias step
         yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        if self._held_back(level - bias, J, asked - s.window, int(np.abs(self._dq).max() < s.monitor_speed)):
+        if self._held_back(level - bias, J, asked - w, int(np.abs(self._dq).max() < s.monitor_speed)):
             self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
             self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
                                 resume=pending if held is None else held["resume"],                     # again at
-                                window=(Q[-s.window:], TAU[-s.window:]), level=level,                   # rest
+                                window=(Q[-w:], TAU[-w:]), level=level,                                 # rest
                                 deadline=self._k + int(s.refine_within * s.rate))
             return
         yield
-        Qw, Tw, prepare = Q[-s.window:], TAU[-s.window:] - bias, getattr(self.executor, "prepare", None)
+        Qw, Tw, prepare = Q[-w:], TAU[-w:] - bias, getattr(self.executor, "prepare", None)
         if prepare is not None:            # the window into the worker's shared memory now, the job on the next sample
             prepare(Qw, Tw)
             yield
@@ -68,7 +68,7 @@ class Streaming:
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
                 self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
-        self._change(Qw, TAU[-s.window:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
+        self._change(Qw, TAU[-w:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
 
     def _on_rest(self, J):
         """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from detector import Detector, DetectorSettings, pseudo_force
+from detector import ALGORITHM_1_CHECKS, Detector, DetectorSettings, pseudo_force
 from experiments.episodes import detector_episode as run_episode
 
 N7 = 7
@@ -89,7 +89,8 @@ def test_referred_detector_sees_load_hidden_by_bias():
     bias, load = np.array([0, -0.6, 0, 0, 0, 0, 0.0]), np.array([0, 1.2, 0, 0, 0, 0, 0.0])
     tau, F = step_signal(rng, 1000, 2.0, load, np.array([0.0, 0.0, -4.0]), bias=bias, noise=0.005)
     assert len(detections(Detector(), tau, F)) == 1
-    assert detections(Detector(DetectorSettings(algorithm="as_printed")), tau, F) == []
+    verbatim = DetectorSettings(algorithm="as_printed", check_windows=ALGORITHM_1_CHECKS)
+    assert detections(Detector(verbatim), tau, F) == []
 
 
 def test_fires_within_500_ms_of_load_added_or_removed_in_simulation():

@@ -25,7 +25,8 @@ def datasets(count, seed, t_change=0.6, seconds=3.0):
     """`count` simulated static holds under CPIC at random poses (the network's training distribution of poses and
     payloads, other seeds), a payload attached at t_change, RME streaming in the loop: the windows the pipeline
     itself uses. Each: dict(theta (4,), q, tau (L, 7) referred to the 30 samples before the change for the windows
-    of L = 50, 100, 200, 300 ms starting 200 ms before the detection, detected (bool), delay [ms])."""
+    of L = 50, 100, 200, 300 ms starting where the pipeline's window at the detection starts (its last
+    RMESettings().detection_window samples), detected (bool), delay [ms])."""
     rng, cfg, out = np.random.default_rng(seed), DataConfig(), []
     lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
     for _ in range(count):
@@ -40,7 +41,7 @@ def datasets(count, seed, t_change=0.6, seconds=3.0):
         hits = [e for e in est.history if e.t > t_change]
         k_det = int(round(hits[0].t / plant.dt)) - 1 if hits else k_change + 300
         ref = TAU[k_change - 30:k_change].mean(axis=0)
-        start = k_det - 200
+        start = k_det - RMESettings().detection_window
         rest = [e for e in hits if e.kind == "at rest"]
         k_rest = int(round(rest[0].t / plant.dt)) if rest else len(Q)
         out.append(dict(theta=theta, q=Q[start:start + 300], tau=TAU[start:start + 300] - ref, detected=bool(hits),
@@ -51,7 +52,8 @@ def datasets(count, seed, t_change=0.6, seconds=3.0):
 
 def mse_table(est, data, length, at_rest=True):
     """MSE per parameter of est.estimate on each dataset's window of `length` samples: the one ending where RME made
-    its estimate at rest (at_rest) or the one starting 200 ms before the detection; and the wall times."""
+    its estimate at rest (at_rest) or the one starting where the pipeline's window at the detection starts; and the
+    wall times."""
     err, secs = [], []
     for d in data:
         q, tau = (d["q_rest"][-length:], d["tau_rest"][-length:]) if at_rest else (d["q"][:length], d["tau"][:length])
@@ -87,7 +89,8 @@ def tables(n_datasets=100, trials=10, seed=0, log=print):
                                                         rng=np.random.default_rng(seed))
     t1_nn, secs = mse_table(nn, data, 200)
     t1_zero, _ = mse_table(zero, data, 200)
-    t1_first = {k: mse_table(e, data, 200, at_rest=False)[0] for k, e in (("nn", nn), ("zero", zero))}
+    w = RMESettings().detection_window                               # the window the pipeline estimates at detection
+    t1_first = {k: mse_table(e, data, w, at_rest=False)[0] for k, e in (("nn", nn), ("zero", zero))}
     t4 = {str(L): mse_table(nn, data, L)[0] for L in (50, 100, 200, 300)}
     t4_first = {str(L): mse_table(nn, data, L, at_rest=False)[0] for L in (50, 100, 200, 300)}
     log(f"tables 1 and 4 done at {time.perf_counter() - t0:.0f} s")

@@ -12,6 +12,7 @@ import mujoco
 import numpy as np
 
 from cpic import Attractor
+from detector import steady_prefix
 
 
 @dataclass(frozen=True)
@@ -34,12 +35,16 @@ class ExploreSettings:
     rest_before: float = 0.25      # s the arm must have been still, with the estimate applied, before exploring
     push_threshold: float = 1.5    # Nm: |tau_ext - the torque the estimate predicts| beyond this abandons the
     #                                exploration (a person); moving the wrist at 1.2 rad/s leaves < 0.6 Nm (measured)
-    reference_tilt: bool = False   # once, with nothing compensated and the arm still, make the same tilt load-free
-    #                                and keep how tau_ext changed over it (the sensor's pose bias, the links' model
-    #                                errors); a later exploration from within reference_tolerance of that start pose
-    #                                refers its tilted window to it and keeps RME's offset prior: a 2 s calibration
-    #                                of this one motion, done by the explorer itself
+    reference_tilt: bool = False   # at start-up, the hand empty (nothing compensated or ever estimated, RME settled)
+    #                                and the arm still, make the same tilt load-free and keep how tau_ext changed
+    #                                over it (the sensor's pose bias, the links' model errors); a later exploration
+    #                                from within reference_tolerance of that start pose refers its tilted window to
+    #                                it and keeps RME's offset prior: a 2 s calibration of this one motion, made by
+    #                                the explorer itself, once per Explorer
     reference_tolerance: float = 0.05   # rad, on every joint
+    reference_limit: float = 0.5   # Nm: a change over the tilt beyond this is not kept, and no reference is made (load-
+    #                                free: 0.1-0.3 Nm; a tool held from the start, which RME takes for bias, shows more)
+    reference_attempts: int = 3    # reference tilts begun, at most (a push or a load change abandons one)
 
     def __post_init__(self):
         a = np.asarray(self.axis, dtype=float)
@@ -54,7 +59,12 @@ class ExploreSettings:
                   ("still_speed", self.still_speed > 0, "a speed > 0 rad/s"),
                   ("push_threshold", self.push_threshold > 0, "a torque > 0 Nm"),
                   ("reference_tilt", isinstance(self.reference_tilt, bool), "True or False"),
-                  ("reference_tolerance", self.reference_tolerance > 0, "an angle > 0 rad"),
+                  ("reference_tolerance", self.reference_tolerance > 0 and not isinstance(self.reference_tolerance,
+                                                                                           bool), "an angle > 0 rad"),
+                  ("reference_limit", self.reference_limit > 0 and not isinstance(self.reference_limit, bool),
+                   "a torque > 0 Nm"),
+                  ("reference_attempts", isinstance(self.reference_attempts, int) and not isinstance(
+                      self.reference_attempts, bool) and self.reference_attempts >= 1, "an integer >= 1"),
                   ("pivot", self.pivot in ("wrist", "ee"), "'wrist' or 'ee'"),
                   ("offset_std", self.offset_std is None or self.offset_std >= 0, "None or a torque >= 0 Nm")]
         for name, ok, want in checks:
@@ -111,7 +121,7 @@ class MovingAttractor:
 @dataclass
 class Exploration:
     """One exploration: times [s] (start: the target starts moving; end: it is back), status ("applied",
-    "recorded" (a reference tilt) or "abandoned: <why>"), the estimate it started from and the one from both poses
+    "recorded" or "refused: <why>" (a reference tilt) or "abandoned: <why>"), the estimate it started from and the one from both poses
     (or None)."""
     start: float
     status: str = "running"
@@ -151,6 +161,7 @@ class Explorer:
         self._k, self._still, self._seen, self._phase = 0, 0, 0, None
         self._theta, self._from, self._limit = None, None, self.robot.torque_limits()
         self.references = []       # (start pose q (n,), load-free change of tau_ext over the tilt (n,)), newest last
+        self._attempts = 0         # reference tilts begun; the last one ended "recorded" or "refused": none more
         return self
 
     # --- what the runner reads ---------------------------------------------------------------------------
@@ -169,8 +180,9 @@ class Explorer:
         self._k += 1
         self._still = self._still + 1 if np.abs(dq).max() < self.settings.still_speed else 0
         if self.ctrl.policy is not self.policy:                      # the task switched policy: follow it
-            if self._phase is not None:
-                self._abandon("the task changed its target")
+            if self._phase is not None:                              # at once: its new target is not turned
+                x, self._phase = self._x, None
+                x.end, x.status = self.t, "applied" if x.status == "returning" else "abandoned: the task changed its target"
             if isinstance(self.ctrl.policy, Attractor):
                 self.policy = MovingAttractor(self.ctrl.policy)
                 self.ctrl.policy = self.policy
@@ -185,11 +197,14 @@ class Explorer:
     def _maybe_start(self):
         """Explore after an accepted estimate that RME has applied and will not refine, once the arm is still."""
         s, rs, hist = self.settings, self.rme.settings, self.rme.history
-        due = hist and hist[-1].accepted and not np.isfinite(hist[-1].applied)    # an estimate about to apply
-        if s.reference_tilt and self.policy.angle == 0.0 and float(self.rme.theta[0]) == 0.0 and not due and \
-                not self.rme.detector.active and self._still >= max(s.window, int(s.rest_before * rs.rate)):
-            q, _, dq = self._window(s.window)
-            if np.abs(dq).max() < rs.rest_speed and self._reference_at(q.mean(axis=0)) is None:   # still: no friction
+        if self.ctrl.policy is not self.policy:
+            return                                                    # the task's DS is no Attractor: not ours to move
+        ended = self.log and self.log[-1].reference and not self.log[-1].status.startswith("abandoned")
+        if s.reference_tilt and self._attempts < s.reference_attempts and not ended and not hist and \
+                float(self.theta[0]) == 0.0 and self.rme.settled and not self.rme.detector.active and \
+                self.policy.angle == 0.0 and self._still >= max(s.window, int(s.rest_before * rs.rate)):
+            if np.abs(self._window(s.window)[2]).max() < rs.rest_speed:   # still: no friction in window a
+                self._attempts += 1
                 return self._start(Exploration(self.t, reference=True), np.zeros(4))
         if len(hist) == self._seen or self.policy.angle != 0.0:
             return
@@ -244,13 +259,18 @@ class Explorer:
 
     def _baseline(self, e):
         """(tau_ext level (n,), q, dq (T, n)) before the change e answers: the still stretch (every joint slower than RME's
-        rest_speed, at most settings.reference samples, after any earlier accepted detection) that ends with RME's
-        reference (detector.py: it precedes the change); else what e left unexplained, if those are no longer kept."""
+        rest_speed, at most settings.reference samples, after any earlier accepted detection) around RME's reference
+        (detector.py: it precedes the change), up to where the level leaves it (detector.steady_prefix, as RME's own);
+        else what e left unexplained, if those are no longer kept."""
         rs, s, keep = self.rme.settings, self.settings, len(self._q)
         first = [h for h in self.rme.history if h.kind == "detection" and h.accepted and h.t <= e.t]
         k0 = int(round(first[-1].t * rs.rate)) - rs.detector.window if first else -1
         if first and self._k - k0 <= keep:
             end = k0 + rs.reference                                  # RME's reference: [k0, end)
+            span = np.arange(k0, k0 + rs.detector.window - rs.detection_window) % keep   # the change lies in it
+            steady = k0 + steady_prefix(self._tau[span], rs.reference, len(span))
+            while end < steady and np.abs(self._dq[end % keep]).max() < rs.rest_speed:
+                end += 1                                             # after it while the level holds and all is still
             low = max(self._k - keep, int(round(first[-2].t * rs.rate)) if len(first) > 1 else 0, end - s.reference)
             k = k0
             while k > low and np.abs(self._dq[(k - 1) % keep]).max() < rs.rest_speed:
@@ -282,8 +302,12 @@ class Explorer:
                 x.windows.append(self._window(s.window))
                 if x.reference:
                     a, b = x.windows
-                    self.references.append((a[0].mean(axis=0), self._level(b) - self._level(a)))
-                    self._return(x, "returning")
+                    change = self._level(b) - self._level(a)
+                    if np.linalg.norm(change) <= s.reference_limit:
+                        self.references.append((a[0].mean(axis=0), change))
+                        self._return(x, "returning")
+                    else:                                             # something on the hand: not load-free
+                        self._return(x, f"refused: tau_ext changed {np.linalg.norm(change):.2f} Nm over the tilt")
                 else:
                     self._estimate(x)
         elif self._phase == "back":
