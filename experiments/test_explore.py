@@ -138,15 +138,18 @@ def test_a_load_free_reference_tilt_brings_rz_below_5_mm_where_the_links_errors_
 
 
 def test_a_push_abandons_the_reference_tilt_and_it_is_made_again_once_the_arm_is_still():
+    """A push 0.4 s into the reference tilt abandons it with nothing kept; the tilt is made again once all is still,
+    and only that one is recorded."""
     seed = 4001
-    probe, _ = explore_trial(THETA, seed, settings=ExploreSettings(reference_tilt=True), t_attach=4.0, seconds=2.0)
+    probe, _ = _referring(seed, [], 2.0)
     start = probe.exploration[0].start
-    rec, _ = explore_trial(THETA, seed, settings=ExploreSettings(reference_tilt=True),
-                           pushes=[Push(start + 0.4, (0.0, 20.0, 0.0), 0.3)], t_attach=6.0, seconds=6.5)
-    first, again = rec.exploration[:2]
+    rec, explorer = _referring(seed, [Push(start + 0.4, (0.0, 20.0, 0.0), 0.3)], 6.0)
+    first, again = rec.exploration
     assert first.reference and first.status.startswith("abandoned") and first.end - first.start < 1.0
     assert again.reference and again.status == "recorded" and again.start > first.end
-    np.testing.assert_array_equal(rec.theta_hat[rec.t < 6.0], 0.0)
+    (q0, _), = explorer.references                                  # the second tilt's, from its window a
+    np.testing.assert_array_equal(q0, again.windows[0][0].mean(axis=0))
+    np.testing.assert_array_equal(rec.theta_hat, 0.0)
 
 
 def _referring(seed, events, seconds, switch=None):
