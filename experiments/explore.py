@@ -182,7 +182,8 @@ class Explorer:
         if self.ctrl.policy is not self.policy:                      # the task switched policy: follow it
             if self._phase is not None:                              # at once: its new target is not turned
                 x, self._phase = self._x, None
-                x.end, x.status = self.t, "applied" if x.status == "returning" else "abandoned: the task changed its target"
+                done = ("recorded" if x.reference else "applied") if x.status == "returning" else x.status
+                x.end, x.status = self.t, done if done != "running" else "abandoned: the task changed its target"
             if isinstance(self.ctrl.policy, Attractor):
                 self.policy = MovingAttractor(self.ctrl.policy)
                 self.ctrl.policy = self.policy

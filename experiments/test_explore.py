@@ -10,7 +10,7 @@ from dynamics import Q_READY
 from experiments.bias_map import calibrate, trial_plant
 from experiments.explore import ExploreSettings, Explorer
 from experiments.explore_demo import explore_trial, limits_touched, storage_check
-from experiments.runner import Push
+from experiments.runner import PayloadChange, Push
 
 THETA = np.array([0.9, 0.05, -0.03, 0.13])          # Table 5 payload 4
 SEED = 4004
@@ -192,3 +192,15 @@ def test_no_reference_tilt_with_a_load_on_the_hand():
     assert x.reference and x.status.startswith("refused") and explorer.references == []
     rec, explorer = _referring(4001, [PayloadChange(0.3, THETA[0], THETA[1:])], 4.5)
     assert rec.exploration and not any(x.reference for x in rec.exploration) and explorer.references == []
+
+
+def test_a_policy_change_while_a_reference_tilt_returns_keeps_its_outcome():
+    """The task switches to a new Attractor 0.2 s before a reference tilt is back: the tilt ends at once, still
+    "recorded" (or "refused", with a tool on the hand), and no other reference tilt follows."""
+    for seed, events, outcome in ((4001, [], "recorded"), (5005, [PayloadChange(0.0, 0.8, (0.08, 0.0, 0.03))], "refused")):
+        probe, _ = _referring(seed, events, 3.5)
+        end = probe.exploration[0].end
+        rec, explorer = _referring(seed, events, end + 4.0, switch=(end - 0.2, Q_READY))
+        (x,) = rec.exploration
+        assert x.reference and x.status.startswith(outcome) and x.end == pytest.approx(end - 0.2, abs=2e-3), x.status
+        assert len(explorer.references) == (outcome == "recorded")
