@@ -185,6 +185,11 @@ class RME(Streaming):
         self._last = np.minimum(np.maximum(-tau_mm, -self._limit), self._limit)
         return self._last
 
+    def _plausible(self, theta) -> bool:
+        """Whether theta (4,) is a payload the arm can carry: mass <= 1.2 max_mass and, from 0.1 kg on, CoM within max_com."""
+        s = self.settings
+        return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
+
     def _apply(self, e, level, Y, J):
         """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
         (q, residual level) the new compensation should leave at pose q (its reference), or None."""
@@ -230,7 +235,7 @@ class RME(Streaming):
         e.t, e.kind = k / s.rate, kind
         before = max(left(vi.phi_of(theta_before)), 1e-12)          # what the estimate before leaves
         e.explained = 1.0 - left(vi.phi_of(e.mean)) / before
-        plausible = bool((e.mean[0] < 0.1 or np.all(np.abs(e.mean[1:]) <= s.max_com)) and e.mean[0] <= 1.2 * s.max_mass)
+        plausible = self._plausible(e.mean)
         e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Ybar))
         if not plausible:
             e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "

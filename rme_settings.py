@@ -122,7 +122,8 @@ class Estimate:
     t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection", "at rest" (once the arm is still), "monitor"
+    kind: str = "window"             # "detection", "at rest" (once the arm is still), "withdrawn" (back to the
+                                     #   estimate before a change found at rest to be no payload), "monitor"
                                      #   (the compensation no longer explained tau_ext at rest) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied (update only)

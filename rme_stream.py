@@ -7,6 +7,7 @@ import numpy as np
 
 import vi
 from detector import PAYLOAD_SIDE, payload_like, safe_theta, steady_prefix, through_flange
+from rme_settings import Estimate
 
 
 class Streaming:
@@ -95,7 +96,23 @@ class Streaming:
                 r, held=False, deadline=self._k + int(s.refine_within * s.rate)))           # rest
             return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"])
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", lambda e, Y: None, level=r["known"])
+        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", self._withdraw(r["before"]),
+                     level=r["known"])
+
+    def _withdraw(self, before):
+        """then(e, Y) for an estimate at rest: if e finds the change beyond what the arm carries (a press far out, read
+        as a plausible load at the detection), the compensation goes back to `before`, the estimate before the change
+        (an Estimate of kind "withdrawn" in history)."""
+        def then(e, Y):
+            if e.accepted or self._plausible(e.mean) or np.array_equal(self.theta, before):
+                return
+            w = Estimate(np.array(before, dtype=float), np.zeros(4), np.zeros((4, 4)), e.prior, np.zeros(4, dtype=bool),
+                         0.0, 0, True)
+            w.t, w.kind, w.accepted = e.t, "withdrawn", True
+            w.reason = f"at rest the change is no payload ({e.reason}): back to the estimate before it"
+            self.history.append(w)
+            self._pending = [self._k, w, None]
+        return then
 
     def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
         r, s = held["resume"], self.settings

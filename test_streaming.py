@@ -354,3 +354,17 @@ def test_a_load_on_a_resting_arm_is_compensated_within_200_ms_on_the_samples_aft
     assert est.history[0].kind == "detection" and within(est.history[0].mean[0], 0.9)
     with pytest.raises(ValueError, match="detector.check_windows"):
         RMESettings(detector=DetectorSettings(check_windows=((491, 495),)))
+
+
+def test_a_press_read_as_a_plausible_load_at_the_detection_is_withdrawn_once_the_arm_rests():
+    """A person presses 20 N down on a handle 0.45 m out from the hand: to the torques 2 kg with its CoM 0.32 m out
+    along the ee's x and y, just beyond max_com. The window at the detection, still in the arm's sag, reads it
+    0.28-0.30 m out, a plausible load, and it is compensated; the estimate at rest reads it beyond max_com, so the
+    compensation goes back to the estimate before the change (none) and stays there while the press lasts."""
+    push = [Push(1.0, (0.0, 0.0, -20.0), 4.5, body="link7", offset=(0.45, 0.0, 0.107))]
+    rec, est = hold(3, 6.0, push)
+    kinds = [(e.kind, e.accepted) for e in est.history]
+    assert ("detection", True) in kinds and ("at rest", False) in kinds, kinds
+    (w,) = [e for e in est.history if e.kind == "withdrawn"]
+    assert w.accepted and w.applied < 3.0 and np.all(w.mean == 0.0)
+    assert np.all(rec.theta_hat[rec.t > w.applied + 0.002] == 0.0)

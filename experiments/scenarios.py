@@ -63,7 +63,8 @@ def print_estimates(log, label="RME"):
         when = (f"applied at {e.applied:.3f} s" if e.accepted else
                 f"rejected: {e.reason} (not a load)")
         what = {"detection": "detects a change", "at rest": "estimates again, arm at rest",
-                "monitor": "estimates again, arm at rest: the compensation no longer explained tau_ext"}.get(
+                "monitor": "estimates again, arm at rest: the compensation no longer explained tau_ext",
+                "withdrawn": "withdraws its estimate: at rest the change is beyond what the arm carries"}.get(
             e.kind, "estimates again, the arm did not come to rest")
         print(f"  {e.t:6.3f} s  {label} {what}; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m  [truth m = {theta[k, 0]:.3f}, "
