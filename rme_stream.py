@@ -140,7 +140,8 @@ class Streaming:
         if moving:
             trusted = self._lv.explained.at(q)
             same = lambda b: b is not None and np.linalg.norm(level - b) <= s.monitor_threshold
-            if (trusted is None or np.linalg.norm(level - trusted) <= s.monitor_slow[1]
+            least = s.monitor_slow[1] if self._refine is None else s.monitor_far   # with an estimate at rest due,
+            if (trusted is None or np.linalg.norm(level - trusted) <= least      # only a new change, not its creep
                     or same(self._lv.muted.at(q)) or same(self._slow_rejected.at(q))
                     or through_flange(J, level - trusted, s.axial_radius[0])
                     or not self._payload_like(level - trusted, s.min_explained, (Y, J))):
