@@ -125,7 +125,8 @@ class Streaming:
         taken as explained, unless it is monitor_far from the nearest level known (detector.Levels.judge). Y, J: the
         payload regressor and Jacobian of the current sample (update's), where a payload is tested.
         moving: the arm is slower than monitor_slow[0] but not calm (returning after a push, say): the level over the
-        last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] from the
+        last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] (monitor_far
+        while an estimate at rest is due: friction during the creep after a compensation is its to judge) from the
         level explained at this pose and off the flange's line (a press is judged at rest), and refined once the arm
         rests. Nothing is kept from such a check (friction still holds a few tenths of a Nm) but a level whose estimate
         was refused: not tried again while it stays (the check at rest judges it once the arm is calm)."""
