@@ -106,8 +106,8 @@ class Streaming:
         def then(e, Y):
             if e.accepted or self._plausible(e.mean) or np.array_equal(self.theta, before):
                 return
-            w = Estimate(np.array(before, dtype=float), np.zeros(4), np.zeros((4, 4)), e.prior, np.zeros(4, dtype=bool),
-                         0.0, 0, True)
+            w = Estimate(mean=np.array(before, dtype=float), std=np.zeros(4), cov=np.zeros((4, 4)), prior=e.prior,
+                         observed=np.zeros(4, dtype=bool), seconds=0.0, iterations=0, converged=True)
             w.t, w.kind, w.accepted = e.t, "withdrawn", True
             w.reason = f"at rest the change is no payload ({e.reason}): back to the estimate before it"
             self.history.append(w)

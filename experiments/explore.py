@@ -120,9 +120,9 @@ class MovingAttractor:
 
 @dataclass
 class Exploration:
-    """One exploration: times [s] (start: the target starts moving; end: it is back), status ("applied",
-    "recorded" or "refused: <why>" (a reference tilt) or "abandoned: <why>"), the estimate it started from and the one from both poses
-    (or None)."""
+    """One exploration: times [s] (start: the target starts moving; end: it is back), status ("applied", "recorded"
+    or "refused: <why>" (a reference tilt), or "abandoned: <why>"), the estimate it started from and the one from
+    both poses (or None)."""
     start: float
     status: str = "running"
     end: float = float("nan")

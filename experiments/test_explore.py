@@ -174,7 +174,6 @@ def test_a_reference_tilt_is_made_once_and_serves_only_its_own_start_pose():
     """The reference is recorded at the ready pose; the task then moves its target 0.15 rad away on joints 2 and 4
     and a load is hung on there: no second reference tilt, and the load's exploration is not referred to the one
     from another pose (it keeps the wider offset prior)."""
-    from experiments.runner import PayloadChange
     q1 = Q_READY + np.array([0.0, 0.15, 0.0, -0.15, 0.0, 0.0, 0.0])
     rec, explorer = _referring(4001, [PayloadChange(5.0, THETA[0], THETA[1:])], 9.0, switch=(3.0, q1))
     ref, *rest = rec.exploration
@@ -186,7 +185,6 @@ def test_no_reference_tilt_with_a_load_on_the_hand():
     """A tool held from the start, which RME takes for the sensor's bias: the tilt's change (0.8 kg, 8 cm out) is
     beyond reference_limit, so nothing is kept and no tilt follows. A load hung on before the arm is first still is
     compensated at once: no reference tilt at all."""
-    from experiments.runner import PayloadChange
     rec, explorer = _referring(5005, [PayloadChange(0.0, 0.8, (0.08, 0.0, 0.03))], 6.0)
     (x,) = rec.exploration
     assert x.reference and x.status.startswith("refused") and explorer.references == []
