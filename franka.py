@@ -102,8 +102,9 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     tau, _ = controller.step(q, dq, comp, tau_ext); cmd = safety.command(tau, G(q)); backend.write(cmd); then, while
     the robot has yet to send the next state: the log, the estimate's poll and any garbage collection (callback_s is
     the time from the state to its command). G comes from the controller's own step when it is a CPIC on `robot`.
-    A dry run writes zeros (the robot backends then command nothing) and prints what it would command every
-    print_every s. Ends after `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate
+    A tau_ext that is not finite (a faulty sample: the estimator drops it) reaches the controller as the last finite
+    one and is logged as read (the summary's faulty_tau_ext counts them). A dry run writes zeros (the robot backends
+    then command nothing) and prints what it would command every print_every s. Ends after `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate
     limit and backend.stop(); an exception is raised again after that. Returns (summary, log arrays)."""
     if not (np.isfinite(seconds) and seconds > 0):
         raise ValueError(f"seconds: expected a finite duration > 0 s, found {seconds!r}")
@@ -121,7 +122,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     shares_G = isinstance(controller, CPIC) and controller.robot is robot
     no_theta, zeros = np.zeros(4), np.zeros(n)
     _warm_up(robot, controller, estimator)
-    k, t, missed, stopped, last_print = 0, 0.0, 0, "end", -np.inf
+    k, t, missed, stopped, last_print, faulty, good = 0, 0.0, 0, "end", -np.inf, 0, zeros
     collect = gc.isenabled()
     gc.collect()
     gc.freeze()                  # what exists now is never scanned again: a collection in the loop stays short
@@ -134,7 +135,11 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             rec["read_s"][k] = t0 - t_read
             tau_ext = paper_tau_ext(s.tau_ext_hat_filtered)
             comp = estimator.update(s.q, s.dq, tau_ext) if estimator is not None else None
-            tau, _ = controller.step(s.q, s.dq, comp, tau_ext)
+            if math.isfinite(tau_ext @ tau_ext):
+                good = tau_ext
+            else:
+                faulty += 1
+            tau, _ = controller.step(s.q, s.dq, comp, good)
             G = controller.G if shares_G else robot.gravity(s.q)
             cmd = safety._command(tau, G)              # (n,) float arrays: checks are for callers outside the loop
             rec["callback_s"][k] = time.perf_counter() - t0
@@ -169,7 +174,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             executor.collect_in_done = in_done
     _stop(backend, safety, dry_run)
     log = {key: v[:k] for key, v in rec.items()}
-    return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds), log
+    return summarize(log, estimator, robot, limit, missed, safety.held, stopped, seconds, faulty), log
 
 
 def _warm_up(robot, controller, estimator):
@@ -257,7 +262,7 @@ def _stop(backend, safety: Safety, dry_run: bool, max_cycles: int = 100):
         backend.stop()
 
 
-def summarize(log, estimator, robot, limit, missed, held, stopped, seconds) -> dict:
+def summarize(log, estimator, robot, limit, missed, held, stopped, seconds, faulty=0) -> dict:
     """What --json prints: run length, estimates (time, mass, CoM), torque and rate peaks, timing."""
     cmd, q = log["tau_cmd"], log["q"]
     G = robot.gravity(q) if len(q) else np.zeros((0, robot.n))
@@ -270,6 +275,7 @@ def summarize(log, estimator, robot, limit, missed, held, stopped, seconds) -> d
                        "max": float(a.max()) if len(a) else 0.0, "cycles": int(len(a))}
     return {"seconds": float(log["t"][-1]) if len(log["t"]) else 0.0, "requested_seconds": seconds,
             "cycles": int(len(log["t"])), "stopped": stopped, "missed_cycles": int(missed), "nan_held": int(held),
+            "faulty_tau_ext": int(faulty),
             "estimates": [{"t": round(float(e.t), 4), "applied": round(float(e.applied), 4),
                            "mass": round(float(e.mean[0]), 4), "com": np.round(e.mean[1:], 4).tolist(),
                            "kind": e.kind, "accepted": bool(e.accepted), "seconds": round(float(e.seconds), 4)}

@@ -221,6 +221,37 @@ class _Failing:
         self.stopped += 1
 
 
+class _Faulty(franka.SimBackend):
+    """The sim backend reporting a tau_ext_hat_filtered of NaN at the read cycles in `at` (a faulty sensor sample)."""
+
+    def __init__(self, at, **kw):
+        self.at, self.k = set(at), None
+        super().__init__(np.random.default_rng(3), **kw)   # reads `initial`
+        self.k = 0                                     # from now on, read k is the state of cycle k
+
+    def read(self):
+        s = super().read()
+        if self.k is not None:
+            if self.k in self.at:
+                s.tau_ext_hat_filtered = np.full(len(s.q), np.nan)
+            self.k += 1
+        return s
+
+
+def test_a_faulty_tau_ext_sample_never_stalls_the_loop_nor_reaches_the_command():
+    """Two NaN samples, one before 1 kg is added (0.6 s) and one while it is being detected: the loop runs to the
+    end, RME drops both, the controller gets the last finite tau_ext, every command is finite and within the limits,
+    and the load is still read within 10 % at rest."""
+    b = _Faulty((400, 700), payload=[(0.6, M_ADD, R_ADD)])
+    est = RME(ROBOT, rng=np.random.default_rng(4))
+    summary, log = franka.run_loop(b, ROBOT, franka.make_controller(ROBOT, b.initial.q, "hold"), est, seconds=2.5)
+    assert summary["stopped"] == "end" and summary["cycles"] == 2500
+    assert summary["faulty_tau_ext"] == 2 and est.dropped == 2
+    assert np.isnan(log["tau_ext"][[400, 700]]).all() and np.isfinite(np.delete(log["tau_ext"], [400, 700], 0)).all()
+    assert np.isfinite(log["tau_cmd"]).all() and np.all(np.abs(log["tau"]) <= LIMIT + 1e-9)
+    assert any(e.kind == "at rest" for e in est.history) and abs(est.theta[0] - M_ADD) <= 0.1 * M_ADD
+
+
 def test_loop_stops_cleanly_on_ctrl_c_and_on_errors():
     b = _Failing(300, KeyboardInterrupt())
     ctrl = franka.make_controller(ROBOT, b.initial.q, "limit-cycle", 0.5)

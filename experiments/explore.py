@@ -174,7 +174,10 @@ class Explorer:
 
     # --- the loop ------------------------------------------------------------------------------------------
     def update(self, q, dq, tau_ext):
+        dropped = self.rme.dropped
         comp = self.rme.update(q, dq, tau_ext)
+        if self.rme.dropped > dropped:                                # a faulty sample RME dropped: not kept here
+            return comp if self._theta is None else self._hold(q)     #   either (the sample counts stay RME's)
         i = self._k % len(self._q)
         self._q[i], self._dq[i], self._tau[i] = q, dq, tau_ext
         self._k += 1
@@ -193,7 +196,11 @@ class Explorer:
             self._maybe_start()
         else:
             self._advance(q, tau_ext)
-        return comp if self._theta is None else np.clip(-self.robot.payload_torque(q, self._theta), -self._limit, self._limit)
+        return comp if self._theta is None else self._hold(q)
+
+    def _hold(self, q):
+        """The compensation of the exploration's estimate at pose q (n,), within the torque limits."""
+        return np.clip(-self.robot.payload_torque(q, self._theta), -self._limit, self._limit)
 
     def _maybe_start(self):
         """Explore after an accepted estimate that RME has applied and will not refine, once the arm is still."""
