@@ -247,7 +247,7 @@ class RME(Streaming):
         if e.accepted:                     # with an executor, on the sample after the job is found done
             self._evidence = (self._evidence + [(Qw, Tw, bias)])[-4:] if kind == "accumulated" else [(Qw, Tw, bias)]
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
-            self._pending = [k + delay if self.executor is None else self._k + 1, e, level]
+            self._pending = [self._k + delay if self.executor is None else self._k + 1, e, level]   # from now
         then(e, Ybar)
 
 

@@ -55,7 +55,7 @@ class Streaming:
             self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
             self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
                                 resume=pending if held is None else held["resume"],                     # again at
-                                window=(Q[-w:], TAU[-w:]), level=level,                                 # rest
+                                window=(Q[-w:], TAU[-w:]), level=level, asked=asked,                    # rest
                                 deadline=self._k + int(s.refine_within * s.rate))
             return
         yield
@@ -94,7 +94,8 @@ class Streaming:
         if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
             again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(   # window, then again at
                 r, held=False, deadline=self._k + int(s.refine_within * s.rate)))           # rest
-            return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"])
+            return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"],
+                                asked=r["asked"])             # its time (Estimate.t): the end of that window
         Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", self._withdraw(r["before"]),
                      level=r["known"])

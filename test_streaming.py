@@ -267,7 +267,8 @@ def test_on_a_cycling_arm_a_centred_load_is_compensated_once_it_has_lasted_and_a
                                                               offset=(0.0, 0.0, 0.107))]
     rec = run(plant, CPIC(plant.robot, cycle), 11.0, est, events, q0=Q_READY)
     applied = [e for e in est.history if e.accepted]
-    assert len(applied) == 1 and 2.0 + 2.5 <= applied[0].t < 2.0 + 3.0, [(e.t, e.kind) for e in est.history]
+    assert len(applied) == 1 and 2.0 + 2.5 <= applied[0].applied < 2.0 + 3.0, [(e.t, e.kind) for e in est.history]
+    assert applied[0].t < 2.0 + 0.5                      # its time: the detection's, whose window it estimates on
     assert within(applied[0].mean[0], 1.0) and est.changes_held == 2
     assert np.abs(rec.theta_hat[rec.t >= 5.0, 0] - applied[0].mean[0]).max() < 1e-12   # the press: nothing applied
 
