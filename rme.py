@@ -163,19 +163,20 @@ class RME(Streaming):
             elif self._job[0].done():
                 self._job = (*self._job[:3], True)
         idle = self._pending is None and self._job is None and self._queued is None and self._steps is None
+        calm = self._calm >= s.monitor_window          # the monitor's checks, every 10th sample: of a calm arm, and
+        slow = not calm and self._slow >= s.window and not self.detector.active   # of a slow one (a change in the
+        check = s.monitor and idle and self._k % 10 == 0                            #   detector's window is its)
         if self._refine is not None and idle:
             r = self._refine                           # (a held change is estimated once it has lasted, moving or not)
-            if self._still >= s.window or (self._calm >= s.monitor_window and self._k > r["deadline"] - s.rate / 2) \
+            if self._still >= s.window or (calm and self._k > r["deadline"] - s.rate / 2) \
                     or (r.get("held") and self._k - r["since"] >= s.hold_axial * s.rate):
                 self._on_rest(J)
             elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
-            elif s.monitor and not r.get("held") and self._k % 10 == 0 and self._slow >= s.window \
-                    and self._calm < s.monitor_window and not self.detector.active:
+            elif check and slow and not r.get("held"):
                 self._check_consistency(Y, J, moving=True)   # a change while the arm still creeps after the last one
-        elif s.monitor and idle and self._k % 10 == 0 and (self._calm >= s.monitor_window or (
-                self._slow >= s.window and not self.detector.active)):   # a change in the detector's window is its
-            self._check_consistency(Y, J, moving=self._calm < s.monitor_window)
+        elif check and (calm or slow):
+            self._check_consistency(Y, J, moving=not calm)
         if self._pending is not None and self._k >= self._pending[0]:
             self._apply(*self._pending[1:], Y, J)
             tau_mm = Y @ self._phi
