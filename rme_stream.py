@@ -73,7 +73,8 @@ class Streaming:
 
     def _on_rest(self, J):
         """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part
-        of the load). A change held at the detection (_held_back, J: update's): released, still held, or estimated."""
+        of the load). A change held at the detection (_held_back, J: update's): released, still held, estimated, or
+        (the arm moving, the level moved far from it) gone."""
         s, r, keep = self.settings, self._refine, len(self._r)
         rest = self._still >= s.window or self._calm >= s.monitor_window
         if r.get("held"):                                              # every 10th sample, from the rings
@@ -91,6 +92,10 @@ class Streaming:
             elif self._k - r["since"] < s.hold_axial * s.rate and through_flange(J, level - r["bias"], s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
         self._refine, self._held = None, None
+        moved = r.get("held") and gap(r["level"]) > max(s.monitor_far, 0.25 * np.linalg.norm(r["level"] - r["bias"]))
+        if moved and not rest:                                         # the level has moved on (a push, another
+            self._refine = self._resumed(r)                            #   change): what the window held is gone
+            return
         if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
             again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(   # window, then again at
                 r, held=False, deadline=self._k + int(s.refine_within * s.rate)))           # rest
@@ -129,8 +134,10 @@ class Streaming:
         last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] (monitor_far
         while an estimate at rest is due: friction during the creep after a compensation is its to judge) from the
         level explained at this pose and off the flange's line (a press is judged at rest), and refined once the arm
-        rests. Nothing is kept from such a check (friction still holds a few tenths of a Nm) but a level whose estimate
-        was refused: not tried again while it stays (the check at rest judges it once the arm is calm)."""
+        rests; at a pose where no level was explained, of more than monitor_far from the nearest level known (no
+        payload if none is: an arm never calm yet). Nothing is kept from such a check (friction still holds a few
+        tenths of a Nm) but a level whose estimate was refused: not tried again while it stays (the check at rest
+        judges it once the arm is calm), and what an accepted one at a new pose leaves, as at rest."""
         s = self.settings
         span = s.window if moving else s.monitor_window
         last = (self._k - span + np.arange(span)) % len(self._r)      # no reorder, no correction
@@ -140,15 +147,19 @@ class Streaming:
         q = self._q[last].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
         if moving:
-            trusted = self._lv.explained.at(q)
+            trusted, kind = self._lv.explained.at(q), "level"
+            if trusted is None:                  # a pose never seen (a push moved the arm): against the nearest
+                trusted, kind = self._lv.explained.at(q, anywhere=True), "far"   # level known (none: an arm never
+                trusted = np.zeros(len(level)) if trusted is None else trusted   #   calm yet, against no payload),
+                                                                                 #   if monitor_far off
             same = lambda b: b is not None and np.linalg.norm(level - b) <= s.monitor_threshold
-            least = s.monitor_slow[1] if self._refine is None else s.monitor_far   # with an estimate at rest due,
-            if (trusted is None or np.linalg.norm(level - trusted) <= least      # only a new change, not its creep
-                    or same(self._lv.muted.at(q)) or same(self._slow_rejected.at(q))
+            least = s.monitor_slow[1] if self._refine is None and kind == "level" else s.monitor_far   # with an
+            if (trusted is None or np.linalg.norm(level - trusted) <= least      # estimate at rest due, only a new
+                    or same(self._lv.muted.at(q)) or same(self._slow_rejected.at(q))   # change, not its creep
                     or through_flange(J, level - trusted, s.axial_radius[0])
                     or not self._payload_like(level - trusted, s.min_explained, (Y, J))):
                 return
-            verdict = (trusted, "level")
+            verdict = (trusted, kind)
         else:                                    # the first level holds the sensor's unknown bias: its side force
             side = PAYLOAD_SIDE if len(self._lv.explained) else (s.detector.side_force_limit, PAYLOAD_SIDE[1])   # too
             verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(d, gate, (Y, J), side=side),
@@ -180,7 +191,7 @@ class Streaming:
             elif first:
                 self._lv.explained.put(q, level)                             # no payload: the level is the bias
                 self.history.pop()                                     # (establishing it is not an estimate)
-            elif kind == "far":
+            elif kind == "far" and not moving:                         # (moving: friction in the level)
                 self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
             elif not e.accepted and not moving:
                 self._lv.muted.put(q, level)
