@@ -177,6 +177,16 @@ class Detector:
             self._quiet = self.settings.refractory
         return fired
 
+    def recent_mean(self, L):
+        """Mean tau_ext (n,) of the last L samples pushed (1 <= L <= window; samples before the first count as 0), in
+        O(n) from the running sums, as shift() re-expressed them."""
+        N, k = self.settings.window, self.count
+        if not 1 <= L <= N:
+            raise ValueError(f"L: expected 1..{N} samples (the window), found {L}")
+        if k < L:                                              # fewer samples than asked: the zeros before them
+            return self._prefix[k % (N + 1), 1:1 + self.n] / L if k else np.zeros(self.n)
+        return (self._prefix[k % (N + 1), 1:1 + self.n] - self._prefix[(k - L) % (N + 1), 1:1 + self.n]) / L
+
     @property
     def status(self):
         """dict of the last evaluation: rapid, settled, stabilisation, force_change, fired (None before the first);
@@ -243,6 +253,7 @@ class LevelMap:
 
     def __init__(self, tolerance: float, size: int = 64):
         self.tolerance, self.size, self.q, self.level, self.anchor = tolerance, size, [], [], []
+        self._qa = None                                        # self.q as an array, while no put changes it
 
     def __len__(self):
         return len(self.q)
@@ -250,7 +261,9 @@ class LevelMap:
     def _nearest(self, q, anywhere=False):
         if not self.q:
             return None
-        d = np.abs(np.asarray(self.q) - q).max(axis=1)
+        if self._qa is None:                                   # the poses as one array, rebuilt after a change
+            self._qa = np.array(self.q)
+        d = np.abs(self._qa - q).max(axis=1)
         i = int(np.argmin(d))
         return i if anywhere or d[i] <= self.tolerance else None
 
@@ -272,6 +285,7 @@ class LevelMap:
         self.anchor.append(self.level[-1] if anchor is None else np.array(anchor, dtype=float))
         if len(self.q) > self.size:
             del self.q[0], self.level[0], self.anchor[0]
+        self._qa = None
 
 
 class Levels:

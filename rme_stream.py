@@ -137,14 +137,13 @@ class Streaming:
         rests; at a pose where no level was explained, of more than monitor_far from the nearest level known (no
         payload if none is: an arm never calm yet). Nothing is kept from such a check (friction still holds a few
         tenths of a Nm) but a level whose estimate was refused: not tried again while it stays (the check at rest
-        judges it once the arm is calm), and what an accepted one at a new pose leaves, as at rest."""
+        judges it once the arm is calm)."""
         s = self.settings
-        span = s.window if moving else s.monitor_window
-        last = (self._k - span + np.arange(span)) % len(self._r)      # no reorder, no correction
-        level, recent = self._r[last].mean(axis=0), self._r[last[-(span // 3):]].mean(axis=0)
+        span = s.window if moving else s.monitor_window               # the residual's means from the detector's
+        level, recent = self.detector.recent_mean(span), self.detector.recent_mean(span // 3)   # sums: O(1)
         if np.linalg.norm(recent - level) > 0.5 * s.monitor_threshold:
             return                                                     # still changing: not a level yet
-        q = self._q[last].mean(axis=0)
+        q = self._q[(self._k - span + np.arange(span)) % len(self._q)].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
         if moving:
             trusted, kind = self._lv.explained.at(q), "level"

@@ -285,3 +285,24 @@ def test_through_flange_matches_a_point_force_torqued_by_mujoco(off, force, expe
     mujoco.mj_jac(plant.model, d, Jp, None, point, body)
     _, _, J = robot.kinematics(q)
     assert through_flange(J, Jp.T @ np.asarray(force), radius=0.012) is expected
+
+
+def test_recent_mean_matches_the_mean_of_the_samples_as_shifted():
+    """Detector.recent_mean(L) from the running sums against np.mean of the last L samples fed, across the ring's
+    re-bases and after shift() re-expressed them (each sample less d); short histories count zeros before them."""
+    rng = np.random.default_rng(9)
+    det, fed = Detector(), []
+    for k in range(1700):
+        x = rng.normal(size=7) + 3.0 * np.sin(k / 97.0)
+        det.update(x, force=rng.normal(size=3))
+        fed.append(x)
+        if k == 900:
+            d = rng.normal(size=7)
+            det.shift(d, rng.normal(size=3))
+            fed = [f - d for f in fed]
+        if k in (0, 5, 499, 500, 501, 900, 901, 1300, 1699):
+            for L in (1, 7, 100, 300, 500):
+                want = np.sum(fed[-L:], axis=0) / L
+                np.testing.assert_allclose(det.recent_mean(L), want, rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="L: expected 1..500"):
+        det.recent_mean(501)
