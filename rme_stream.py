@@ -77,10 +77,10 @@ class Streaming:
         (the arm moving, the level moved far from it) gone."""
         s, r, keep = self.settings, self._refine, len(self._r)
         rest = self._still >= s.window or self._calm >= s.monitor_window
-        if r.get("held"):                                              # every 10th sample, from the rings
+        if r.get("held"):                                              # every 10th sample, from the running sums
             if self._k % 10:
                 return
-            q, level = self._q[(self._k - 1) % keep], self._r[(self._k - s.window + np.arange(s.window)) % keep].mean(0)
+            q, level = self._q[(self._k - 1) % keep], self.detector.recent_mean(s.window)
             gap = lambda b: np.linalg.norm(level - b)
             if any(gap(b) <= s.monitor_threshold for b in (r["bias"], self._lv.explained.at(q)) if b is not None):
                 self._refine, self._held = self._resumed(r), None      # back to the level before it, or to one the
