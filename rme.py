@@ -11,11 +11,11 @@ import numpy as np
 from scipy.linalg import lapack
 
 import vi
-from detector import Detector, LevelMap, Levels, safe_theta
+from detector import Detector, safe_theta
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings
-from rme_stream import Streaming
+from rme_stream import LevelMap, Levels, Streaming
 
 __all__ = ["RME", "RMESettings", "Estimate"]
 

@@ -238,7 +238,7 @@ def test_an_explained_level_follows_a_slow_drift_only_as_far_as_the_threshold_fr
     """Levels.judge follows a residual level that moves less than `threshold` between checks (the sensor's bias
     drifts), but a level that has crept beyond `threshold` from the one the estimate left (a load's torque that joint
     friction lets go bit by bit) is judged against that one: a payload to estimate, or muted if it is none."""
-    from detector import Levels
+    from rme_stream import Levels
     q, start, step = np.zeros(7), np.array([0.2, 0.6, -0.4, -0.4, 0.05, -0.07, 0.0]), np.array([0, 1, 0, -1, 0, 0, 0]) * 0.04
     for payload in (True, False):
         lv, asked, verdicts, tested = Levels(tolerance=0.3, threshold=0.3), [], [], []

@@ -151,7 +151,7 @@ class Explorer:
         if not isinstance(getattr(controller, "policy", None), Attractor):
             raise ValueError(f"controller.policy: expected a cpic.Attractor to move, found "
                              f"{type(getattr(controller, 'policy', None)).__name__}")
-        if not all(hasattr(rme, a) for a in ("update", "estimate", "history", "theta", "settings", "robot")):
+        if not all(hasattr(rme, a) for a in ("update", "estimate", "history", "theta", "settings", "robot", "dropped")):
             raise ValueError(f"estimator: expected an rme.RME to explore for, found {type(rme).__name__}")
         self.ctrl, self.rme, self.robot = controller, rme, rme.robot
         self.policy = MovingAttractor(controller.policy)
@@ -217,7 +217,8 @@ class Explorer:
         if len(hist) == self._seen or self.policy.angle != 0.0:
             return
         e = hist[-1]
-        final = e.kind in ("at rest", "monitor") or not rs.refine or self.t > e.t + rs.refine_within
+        # final: no estimate at rest is due after it (one is made within refine_within of applying a detection's)
+        final = e.kind in ("at rest", "monitor") or not rs.refine or self.t > e.applied + rs.refine_within
         if not (e.accepted and final and np.isfinite(e.applied) and e.applied <= self.t):
             if not e.accepted:
                 self._seen = len(hist)

@@ -236,7 +236,7 @@ def limit_cycle_trials(seeds=range(20), load=(2.0, 0.04, 0.0, 0.10), t_attach=4.
         u = rec.p[late] - cycle.center
         phase = np.unwrap(np.arctan2(u[:, 2], u[:, 1]))
         recovered.append(bool((phase[-1] - phase[0]) / (2 * np.pi * 2.0) >= 0.1))
-        hits = [e.t for e in rec.history if e.accepted and e.t > t_attach]
+        hits = [e.applied for e in rec.history if e.accepted and e.t > t_attach and np.isfinite(e.applied)]
         detected.append(hits[0] - t_attach if hits else None)
     free = scenario(Args(seed=0), free_seconds, [], policies=[(0.0, cycle)])
     return {"seeds": len(ok), "compensated": sum(ok), "cycling_again": sum(recovered),
