@@ -23,7 +23,7 @@ class ExploreSettings:
     axis: tuple = (0.0, 1.0, 0.0)  # that axis (world, horizontal); at the ready pose it is joint 6's
     pivot: str = "wrist"           # the axis passes through "wrist" (joint 6's anchor: only the wrist need turn,
     #                                the upper links stay where their model errors were referred) or "ee"
-    offset_std: float | None = 0.1  # Nm, each window's marginalised offset (vi.precompute; None: RME's 0.05): the
+    offset_std: float | None = 0.1  # Nm, each window's marginalised offset (vi.precompute; None: RME's 0.005): the
     #                                realistic sensor's bias and the links' model errors change by 0.05-0.15 Nm
     speed: float = 1.5             # rad/s: peak angular speed of the target (cosine profile; ours; joint 6 may
     #                                turn at 2.61 rad/s, panda_facts.md)
