@@ -44,6 +44,7 @@ class RME(Streaming):
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
         self.changes_not_payload, self.changes_held = 0, 0   # detections no payload explains (not estimated); held
         self._held = None                              # the sample since which a change has been held (_held_back)
+        self._expected = 0                             # before this sample a change is expected (expect_change)
         self._slow_rejected = LevelMap(settings.pose_tolerance, size=1)   # the level a slow arm's check estimated in vain
         self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
@@ -62,6 +63,15 @@ class RME(Streaming):
         estimate due, queued or in flight."""
         return bool(len(self._lv.explained)) and self._pending is None and self._job is None and \
             self._queued is None and self._steps is None and self._refine is None
+
+    def expect_change(self, seconds: float = 2.0):
+        """The task expects a load change within `seconds` from now (it closes or opens the gripper): a change that
+        adds a force through the flange's line (a load centred below the hand, as a grasped object mostly is) is
+        then estimated at its detection, not held as a possible press (RMESettings.hold_axial). A person pressing on
+        the hand meanwhile is taken for the load it looks like, as with hold_axial = 0."""
+        if not (isinstance(seconds, (int, float, np.integer, np.floating)) and 0 <= seconds < math.inf):
+            raise ValueError(f"seconds: expected a finite time >= 0 s, found {seconds!r}")
+        self._expected = self._k + int(round(seconds * self.settings.rate))
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
@@ -168,8 +178,8 @@ class RME(Streaming):
         check = s.monitor and idle and self._k % 10 == 0                            #   detector's window is its)
         if self._refine is not None and idle:
             r = self._refine                           # (a held change is estimated once it has lasted, moving or not)
-            if self._still >= s.window or (calm and self._k > r["deadline"] - s.rate / 2) \
-                    or (r.get("held") and self._k - r["since"] >= s.hold_axial * s.rate):
+            if self._still >= s.window or (calm and self._k > r["deadline"] - s.rate / 2) or (r.get("held") and (
+                    self._k - r["since"] >= s.hold_axial * s.rate or self._k < self._expected)):   # or expected now
                 self._on_rest(J)
             elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = self._held = None       # the arm never rested: the monitor checks it when it does

@@ -193,7 +193,8 @@ class Streaming:
                 r = self._refine = dict(r, held=False)                 #   what is left is estimated at rest
                 if not rest:
                     return
-            elif self._k - r["since"] < s.hold_axial * s.rate and through_flange(J, level - r["bias"], s.axial_radius[1]):
+            elif self._k - r["since"] < s.hold_axial * s.rate and self._k >= self._expected and \
+                    through_flange(J, level - r["bias"], s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
         self._refine, self._held = None, None
         if r.get("held") and not rest and self._moved_on(r, q, level):   # a push, another change: what the window
@@ -321,8 +322,8 @@ class Streaming:
         the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less than hold_axial
         since self._held (set to `since`, the sample it began by, if None; cleared when such a change goes)."""
         s = self.settings
-        if s.hold_axial <= 0 or not through_flange(J, d, s.axial_radius[rest]):
-            self._held = None
+        if s.hold_axial <= 0 or self._k < self._expected or not through_flange(J, d, s.axial_radius[rest]):
+            self._held = None                                          # (a change the task expects: not held)
             return False
         self._held = since if self._held is None else self._held
         return self._k - self._held < s.hold_axial * s.rate

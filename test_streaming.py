@@ -242,6 +242,32 @@ def test_a_load_centred_below_the_flange_is_compensated_once_it_has_lasted():
     assert within(rec.theta_hat[-1, 0], 1.0)
 
 
+def test_a_centred_load_the_task_expects_is_compensated_at_its_detection():
+    """The same centred 1 kg, with the task telling RME 0.1 s before that it grasps (RME.expect_change): not held,
+    compensated at its detection, within 0.4 s and 10 %. The same call while a held change waits (told 0.5 s after
+    the load came) has it estimated then, not 2.5 s after it came. Bad input is a ValueError naming seconds."""
+    rng = np.random.default_rng(5)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    est = RME(plant.robot, settings=SYNC, rng=np.random.default_rng(6))
+    tell = lambda at: (lambda k, sample: k == int(round(at / plant.dt)) and est.expect_change(1.0))
+    rec = run(plant, CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY))), 3.0, est,
+              [PayloadChange(1.0, 1.0, (0.0, 0.0, 0.1))], q0=Q_READY, before_step=tell(0.9))
+    applied = [e for e in est.history if e.accepted]
+    assert est.changes_held == 0 and applied and applied[0].applied < 1.0 + 0.4, [(e.t, e.kind) for e in est.history]
+    assert within(rec.theta_hat[-1, 0], 1.0)
+    rng = np.random.default_rng(5)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    est = RME(plant.robot, settings=SYNC, rng=np.random.default_rng(6))
+    rec = run(plant, CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY))), 3.0, est,
+              [PayloadChange(1.0, 1.0, (0.0, 0.0, 0.1))], q0=Q_READY, before_step=tell(1.5))
+    applied = [e for e in est.history if e.accepted]
+    assert est.changes_held == 1 and applied and applied[0].applied < 1.5 + 0.1, [(e.t, e.kind) for e in est.history]
+    assert within(rec.theta_hat[-1, 0], 1.0)
+    for bad in (-1.0, np.inf, np.nan, "1"):
+        with pytest.raises(ValueError, match="seconds: expected a finite time"):
+            est.expect_change(bad)
+
+
 def test_a_press_while_a_loads_estimate_at_rest_is_pending_keeps_that_estimate():
     """An off-axis 1 kg load read 7 % light at its detection, then a 20 N press through the flange for 1 s before the
     arm rests: the press is held and released, and the load's estimate at rest still comes (without the press it

@@ -37,10 +37,11 @@ def make_plant(args, rng):
     return plant
 
 
-def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, correction=None) -> Record:
+def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, correction=None, expect=()) -> Record:
     """One closed-loop run: CPIC (+ RME compensation when use_rme) on a plant made from args (preset, seed).
     loads: [(t, (m, rx, ry, rz) total payload, inertia or None)], pushes: [(t, duration, force (3,))],
-    policies: [(t, policy)] (the first one, at t = 0, is the initial DS; default: hold the pose at q0)."""
+    policies: [(t, policy)] (the first one, at t = 0, is the initial DS; default: hold the pose at q0);
+    expect: times [s] at which the task tells RME a load change is coming (RME.expect_change: a grasp, a release)."""
     rng = np.random.default_rng(args.seed)                # the same plant and sensor noise with and without RME
     plant = make_plant(args, rng)
     robot = plant.robot
@@ -50,7 +51,9 @@ def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, 
     events = [PayloadChange(t, theta[0], theta[1:], inertia) for t, theta, inertia in loads]
     events += [Push(t, force, duration) for t, duration, force in pushes]
     events += [PolicySwitch(t, policy) for t, policy in policies[1:]]
-    return run_loop(plant, ctrl, seconds, estimator=est, events=events, q0=q0)
+    told = {int(round(t / plant.dt)) for t in expect}
+    step = (lambda k, sample: k in told and est.expect_change()) if est is not None and told else None
+    return run_loop(plant, ctrl, seconds, estimator=est, events=events, q0=q0, before_step=step)
 
 
 def print_estimates(log, label="RME"):
@@ -224,9 +227,10 @@ def pick_place(args):
     obj, extra = (0.7, 0.0, 0.0, 0.10), (0.5, 0.03, 0.0, 0.12)
     loads = [(2.5, *combine(obj)), (6.0, *combine(obj, extra)), (8.0, *combine())]
     seconds = 11.0
-    runs = {name: run(args, seconds, loads, policies=[(t, Attractor(p, R0)) for t, p, _ in plan], use_rme=on)
-            for name, on in (("without", False), ("with", True))}
-    print(f"Pick and place under CPIC ({args.preset} plant, seed {args.seed}).")
+    runs = {name: run(args, seconds, loads, policies=[(t, Attractor(p, R0)) for t, p, _ in plan], use_rme=on,
+                      expect=(2.5, 8.0)) for name, on in (("without", False), ("with", True))}   # grasp, release
+    print(f"Pick and place under CPIC ({args.preset} plant, seed {args.seed}; the task tells RME of its grasp and "
+          f"release: RME.expect_change).")
     for t, line in sorted([(t, label) for t, _, label in plan] + [(2.5, "object (0.7 kg) grasped"),
                                                                    (6.0, "0.5 kg added to it"),
                                                                    (8.0, "object placed (released)")]):
