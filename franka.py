@@ -103,9 +103,10 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     the robot has yet to send the next state: the log, the estimate's poll and any garbage collection (callback_s is
     the time from the state to its command). G comes from the controller's own step when it is a CPIC on `robot`.
     A tau_ext that is not finite or beyond RME's max_abs_torque (a faulty sample: RME drops it) reaches the controller
-    as the last good one and is logged as read (the summary's faulty_tau_ext counts them). A dry run writes zeros (the robot backends
-    then command nothing) and prints what it would command every print_every s. Ends after `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate
-    limit and backend.stop(); an exception is raised again after that. Returns (summary, log arrays)."""
+    as the last good one and is logged as read (the summary's faulty_tau_ext counts them). A dry run writes zeros
+    (the robot backends then command nothing) and prints what it would command every print_every s. Ends after
+    `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate limit and backend.stop();
+    an exception is raised again after that. Returns (summary, log arrays)."""
     if not (np.isfinite(seconds) and seconds > 0):
         raise ValueError(f"seconds: expected a finite duration > 0 s, found {seconds!r}")
     n, steps = robot.n, int(round(seconds * 1000))
@@ -123,7 +124,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     no_theta, zeros = np.zeros(4), np.zeros(n)
     _warm_up(robot, controller, estimator)
     k, t, missed, stopped, last_print, faulty, good = 0, 0.0, 0, "end", -np.inf, 0, zeros
-    faulty_beyond = getattr(getattr(estimator, "settings", None), "max_abs_torque", RMESettings.max_abs_torque) ** 2
+    faulty_beyond = getattr(getattr(estimator, "settings", None), "max_abs_torque", RMESettings.max_abs_torque)
     collect = gc.isenabled()
     gc.collect()
     gc.freeze()                  # what exists now is never scanned again: a collection in the loop stays short
@@ -136,7 +137,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             rec["read_s"][k] = t0 - t_read
             tau_ext = paper_tau_ext(s.tau_ext_hat_filtered)
             comp = estimator.update(s.q, s.dq, tau_ext) if estimator is not None else None
-            if tau_ext @ tau_ext <= faulty_beyond:     # False for NaN
+            if np.abs(tau_ext).max() <= faulty_beyond:   # as RME drops a sample (False for NaN)
                 good = tau_ext
             else:
                 faulty += 1

@@ -69,9 +69,11 @@ class RME(Streaming):
         adds a force through the flange's line (a load centred below the hand, as a grasped object mostly is) is
         then estimated at its detection, not held as a possible press (RMESettings.hold_axial). A person pressing on
         the hand meanwhile is taken for the load it looks like, as with hold_axial = 0."""
-        if not (isinstance(seconds, (int, float, np.integer, np.floating)) and 0 <= seconds < math.inf):
+        if isinstance(seconds, bool) or not (isinstance(seconds, (int, float, np.integer, np.floating))
+                                             and 0 <= seconds < math.inf):
             raise ValueError(f"seconds: expected a finite time >= 0 s, found {seconds!r}")
-        self._expected = self._k + int(round(seconds * self.settings.rate))
+        self._expected = max(self._expected, self._k + 1 + int(round(seconds * self.settings.rate)))   # (a shorter
+                                                                                        #   call keeps a longer one)
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:

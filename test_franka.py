@@ -244,8 +244,14 @@ def test_a_faulty_tau_ext_sample_never_stalls_the_loop_nor_reaches_the_command()
     loop runs to the end, RME drops both, the controller gets the last good tau_ext, every command is finite and within
     the limits, and the load is still read within 10 % at rest."""
     b = _Faulty((400, 701), payload=[(0.6, M_ADD, R_ADD)])
-    est = RME(ROBOT, rng=np.random.default_rng(4))
-    summary, log = franka.run_loop(b, ROBOT, franka.make_controller(ROBOT, b.initial.q, "hold"), est, seconds=2.5)
+    est, ctrl, given = RME(ROBOT, rng=np.random.default_rng(4)), franka.make_controller(ROBOT, b.initial.q, "hold"), []
+    step = ctrl.step
+    ctrl.step = lambda q, dq, comp, tau_ext: given.append(np.array(tau_ext)) or step(q, dq, comp, tau_ext)
+    summary, log = franka.run_loop(b, ROBOT, ctrl, est, seconds=2.5)
+    given = given[-2500:]                             # (the warm-up's step before the loop comes first)
+    for k in (400, 701):                              # the controller got the sample before, as logged
+        np.testing.assert_array_equal(given[k], log["tau_ext"][k - 1])
+        np.testing.assert_array_equal(given[k - 1], log["tau_ext"][k - 1])
     assert summary["stopped"] == "end" and summary["cycles"] == 2500
     assert summary["faulty_tau_ext"] == 2 and est.dropped == 2
     assert np.all(log["tau_ext"][400] == -5e3) and np.isnan(log["tau_ext"][701]).all()

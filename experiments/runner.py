@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rme_settings import RMESettings
 from sim import Plant, Sample
 
 
@@ -124,7 +125,8 @@ def run(plant: Plant, controller, seconds: float, estimator=None, events=(), q0=
     controller.step(q, dq, comp, tau_ext) (tau_ext only if tau_ext_to_controller: CPIC's barriers use it, Eq. 8);
     the plant applies tau. The plant starts from plant.reset(q0, dq0) unless `first` (a Sample it already returned)
     is given. before_step(k, sample), if given, runs first in each step (e.g. to move a hold's set point, or to make
-    a sample faulty: a tau_ext that is not finite reaches the controller as the last finite one, as in franka.py).
+    a sample faulty: a tau_ext that is not finite or beyond RME's max_abs_torque reaches the controller as the last
+    good one, as in franka.py).
     explorer (off by default): an experiments.explore.Explorer; it wraps the estimator (an RME) and moves the
     controller's Attractor target to observe the CoM along gravity (Record.exploration lists what it did).
     """
@@ -143,14 +145,15 @@ def run(plant: Plant, controller, seconds: float, estimator=None, events=(), q0=
             ("theta", (4,)), ("theta_hat", (4,)), ("target", (3,)), ("V", (2,)))}
     rec["fallback"] = np.zeros(steps, dtype=bool)
     rec["V"][:] = np.nan
-    good = np.zeros(n)
+    good = np.zeros(n)                                 # the last good tau_ext; beyond limit a sample is faulty
+    limit = getattr(getattr(estimator, "settings", None), "max_abs_torque", RMESettings.max_abs_torque)
     for k in range(steps):
         if before_step is not None:
             before_step(k, s)
         while pending and pending[0].t <= s.t:
             controller.policy = pending.pop(0).policy
         comp = estimator.update(s.q, s.dq, s.tau_ext) if estimator is not None else None
-        good = s.tau_ext if np.all(np.isfinite(s.tau_ext)) else good
+        good = s.tau_ext if np.abs(s.tau_ext).max() <= limit else good   # (False for NaN)
         tau, info = controller.step(s.q, s.dq, comp, good if tau_ext_to_controller else None)
         rec["t"][k], rec["q"][k], rec["dq"][k], rec["tau"][k] = s.t, s.q, s.dq, tau
         rec["tau_J"][k], rec["tau_ext"][k], rec["theta"][k] = s.tau_J, s.tau_ext, plant.theta
