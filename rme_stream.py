@@ -197,12 +197,12 @@ class Streaming:
                     through_flange(J, level - r["bias"], s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
         self._refine, self._held = None, None
-        if r.get("held") and not rest and self._moved_on(r, q, level):   # a push, another change: what the window
-            self._refine = self._resumed(r)                              #   held is gone
-            return
         if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
-            again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(   # window, then again at
-                r, held=False, deadline=self._k + int(s.refine_within * s.rate)))           # rest
+            if self._moved_on(r, q, level):                            #   window, then again at rest; unless a
+                self._refine = self._resumed(r)                        #   push or another change came since: what
+                return                                                 #   the window held is gone
+            again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(
+                r, held=False, deadline=self._k + int(s.refine_within * s.rate)))
             return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"],
                                 asked=r["asked"])             # its time (Estimate.t): the end of that window
         Q, TAU, _ = self._buffer()
