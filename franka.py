@@ -17,7 +17,8 @@ import numpy as np
 
 from cpic import CPIC, Attractor, CPICConfig, LimitCycle
 from dynamics import Robot
-from rme import RME, RMESettings
+from rme import RME
+from rme_settings import RMESettings, faulty as faulty_sample
 from robot.backends import (Q_START, FrankySimBackend, PandaPyBackend, PylibfrankaBackend, SimBackend, State,
                             paper_tau_ext)
 from robot.worker import WORKERS, EstimatorSpec, make_worker
@@ -124,7 +125,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     no_theta, zeros = np.zeros(4), np.zeros(n)
     _warm_up(robot, controller, estimator)
     k, t, missed, stopped, last_print, faulty, good = 0, 0.0, 0, "end", -np.inf, 0, zeros
-    faulty_beyond = getattr(getattr(estimator, "settings", None), "max_abs_torque", RMESettings.max_abs_torque)
+    limit_ext = getattr(getattr(estimator, "settings", None), "max_abs_torque", RMESettings.max_abs_torque)
     collect = gc.isenabled()
     gc.collect()
     gc.freeze()                  # what exists now is never scanned again: a collection in the loop stays short
@@ -137,10 +138,10 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             rec["read_s"][k] = t0 - t_read
             tau_ext = paper_tau_ext(s.tau_ext_hat_filtered)
             comp = estimator.update(s.q, s.dq, tau_ext) if estimator is not None else None
-            if np.abs(tau_ext).max() <= faulty_beyond:   # as RME drops a sample (False for NaN)
-                good = tau_ext
-            else:
+            if faulty_sample(tau_ext, limit_ext):      # as RME drops it
                 faulty += 1
+            else:
+                good = tau_ext
             tau, _ = controller.step(s.q, s.dq, comp, good)
             G = controller.G if shares_G else robot.gravity(s.q)
             cmd = safety._command(tau, G)              # (n,) float arrays: checks are for callers outside the loop

@@ -14,7 +14,7 @@ import vi
 from detector import Detector, safe_theta
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
-from rme_settings import Estimate, RMESettings
+from rme_settings import Estimate, RMESettings, faulty
 from rme_stream import LevelMap, Levels, Streaming
 
 __all__ = ["RME", "RMESettings", "Estimate"]
@@ -139,7 +139,7 @@ class RME(Streaming):
         tau = np.asarray(tau_ext, dtype=float)
         if tau.shape != (n,):
             raise ValueError(f"tau_ext: expected shape ({n},), found {tau.shape}")
-        if not np.all(np.isfinite(tau)) or np.abs(tau).max() > s.max_abs_torque:
+        if faulty(tau, s.max_abs_torque):
             self.dropped += 1                          # a sensor fault, not a load: never reaches the estimator
             return self._last
         i = self._k % keep

@@ -108,6 +108,12 @@ class RMESettings:
         return min(self.window, d.window + 1 - min(w[0] for w in d.check_windows))
 
 
+def faulty(tau_ext, limit=RMESettings.max_abs_torque) -> bool:
+    """Whether a tau_ext sample (n,) is a sensor fault, not a load: not finite, or a joint beyond `limit` [Nm]
+    (RME drops it; the robot loop hands its controller the last good sample instead)."""
+    return not np.abs(tau_ext).max() <= limit         # (NaN compares False)
+
+
 @dataclass
 class Estimate:
     """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""

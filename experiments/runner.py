@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rme_settings import RMESettings
+from rme_settings import RMESettings, faulty
 from sim import Plant, Sample
 
 
@@ -153,7 +153,7 @@ def run(plant: Plant, controller, seconds: float, estimator=None, events=(), q0=
         while pending and pending[0].t <= s.t:
             controller.policy = pending.pop(0).policy
         comp = estimator.update(s.q, s.dq, s.tau_ext) if estimator is not None else None
-        good = s.tau_ext if np.abs(s.tau_ext).max() <= limit else good   # (False for NaN)
+        good = good if faulty(s.tau_ext, limit) else s.tau_ext
         tau, info = controller.step(s.q, s.dq, comp, good if tau_ext_to_controller else None)
         rec["t"][k], rec["q"][k], rec["dq"][k], rec["tau"][k] = s.t, s.q, s.dq, tau
         rec["tau_J"][k], rec["tau_ext"][k], rec["theta"][k] = s.tau_J, s.tau_ext, plant.theta
