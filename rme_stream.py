@@ -61,6 +61,7 @@ class Levels:
     def __init__(self, tolerance: float, threshold: float):
         self.tolerance, self.threshold = tolerance, threshold
         self.explained, self.muted, self.rejected = LevelMap(tolerance), LevelMap(tolerance), None
+        self.doubtful = False          # the first level, taken as the bias, is no payload but too far from zero for one
 
     def undone(self, q, level) -> bool:
         """Whether the residual `level` at pose q is back within `threshold` of the level before the last rejected
@@ -74,12 +75,15 @@ class Levels:
         return back
 
     def judge(self, q, level, is_payload, gates, far):
-        """What a steady residual `level` (n,) at pose q means (is_payload(d, gate) -> bool: payload_like for a change d
-        there, called only if a payload must be tested; gates: (first, later) explained shares): None when it needs nothing
-        (explained here: the level is followed; judged before; no payload), "new" at a pose never seen (taken as
-        explained) unless the level is more than `far` [Nm] from the nearest level known (no sensor bias reaches
-        that: a change missed while a push moved the arm), else (reference, kind) to estimate against: kind "first"
-        (the very first level, against no payload), "level" (the level explained here) or "far"."""
+        """What a steady residual `level` (n,) at pose q means (is_payload(d, gate, none) -> bool: payload_like for a
+        change d there, none: d is against no payload at all, the sensor's bias in it; called only if a payload must
+        be tested; gates: (first, later) explained shares): None when it needs nothing (explained here: the level is
+        followed; judged before; no payload), "new" at a pose never seen (taken as explained) unless the level is more
+        than `far` [Nm] from the nearest level known (no sensor bias reaches that: a change missed while a push moved
+        the arm), else (reference, kind) to estimate against: kind "first" (the very first level, against no
+        payload), "level" (the level explained here) or "far". A first level that is no payload yet more than `far`
+        from zero (a person holding the arm from the start, a tool) is doubtful: a later level that is no payload
+        against it but a clear one against none replaces it, as a new first level."""
         near = lambda a, b: b is not None and np.linalg.norm(a - b) <= self.threshold
         trusted, first = self.explained.at(q), len(self.explained) == 0
         if near(level, self.muted.at(q)):
@@ -97,10 +101,17 @@ class Levels:
                 return None
             trusted = anchor           # beyond: a slow change (friction letting go of a load's part as the arm creeps)
         reference = np.zeros(len(level)) if first else trusted
-        if not is_payload(level - reference, gates[0] if first else gates[1]):
-            (self.explained if first else self.muted).put(q, level)    # the bias; or e.g. a person holding the arm
-            return None
-        return reference, kind
+        if is_payload(level - reference, gates[0] if first else gates[1], first):
+            return reference, kind
+        if first:                                                      # the bias; or e.g. a person holding the arm:
+            self.explained.put(q, level)                               #   no sensor's bias is `far` from zero
+            self.doubtful = bool(np.linalg.norm(level) > far)
+        elif self.doubtful and is_payload(level, gates[0], True):      # a clear payload against none at all: that
+            self.explained, self.doubtful = LevelMap(self.tolerance), False   # first level was no bias (a push)
+            return np.zeros(len(level)), "first"
+        else:
+            self.muted.put(q, level)
+        return None
 
     def bias(self, R_ref, q_ref):
         """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
@@ -150,12 +161,17 @@ class Streaming:
         bias = pending["bias"] if pending is not None else self._lv.bias(Rs[:steady], q_ref)   # the level before,
         yield                                                                                   # as long as it holds
         _, R, J = self.robot.kinematics(Q[-1])
-        if not self._payload_like(level - bias, s.min_explained, (self.robot.payload_regressor_from(J, R), J), before[0]):
+        YJ, rest = (self.robot.payload_regressor_from(J, R), J), int(np.abs(self._dq).max() < s.monitor_speed)
+        if held is not None and self._payload_like(level - held["bias"], s.min_explained, YJ, before[0]) and \
+                self._held_back(level - held["bias"], J, held["since"], rest):
+            self._refine = dict(held, window=(Q[-w:], TAU[-w:]), level=level, asked=asked)
+            return                         # the held press, moved a little (the arm yielding to it): still held
+        if not self._payload_like(level - bias, s.min_explained, YJ, before[0]):
             self.changes_not_payload, self._lv.rejected = self.changes_not_payload + 1, (q_ref, bias)
             return                         # a push, a bias step
         yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        if self._held_back(level - bias, J, asked - w, int(np.abs(self._dq).max() < s.monitor_speed)):
+        if self._held_back(level - bias, J, asked - w, rest):
             self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
             self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
                                 resume=pending if held is None else held["resume"],                     # again at
@@ -272,9 +288,9 @@ class Streaming:
                 return
             verdict = (trusted, kind)
         else:                                    # the first level holds the sensor's unknown bias: its side force
-            side = PAYLOAD_SIDE if len(self._lv.explained) else (s.detector.side_force_limit, PAYLOAD_SIDE[1])   # too
-            verdict = self._lv.judge(q, level, lambda d, gate: self._payload_like(d, gate, (Y, J), side=side),
-                                     (first_gate, s.min_explained), s.monitor_far)
+            blank = (s.detector.side_force_limit, PAYLOAD_SIDE[1])    # too (tested against no payload at all)
+            verdict = self._lv.judge(q, level, lambda d, gate, none=False: self._payload_like(
+                d, gate, (Y, J), side=blank if none else PAYLOAD_SIDE), (first_gate, s.min_explained), s.monitor_far)
         if verdict == "new" and s.accumulate and self._evidence and self.theta[0] > 0.05 and self._turned(q):
             Q, TAU, _ = self._buffer()           # the same payload seen from a new side: combine the evidence
             same = lambda e, Tw, Y: abs(e.mean[0] - self.theta[0]) <= max(0.1 * self.theta[0], 0.05)
