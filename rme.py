@@ -67,7 +67,8 @@ class RME(Streaming):
     def expect_change(self, seconds: float = 2.0):
         """The task expects a load change within `seconds` from now (it closes or opens the gripper): a change that
         adds a force through the flange's line (a load centred below the hand, as a grasped object mostly is) is
-        then estimated at its detection, not held as a possible press (RMESettings.hold_axial). A person pressing on
+        then estimated at its detection (or by the monitor's check of a slow arm), not held as a possible press
+        (RMESettings.hold_axial). A person pressing on
         the hand meanwhile is taken for the load it looks like, as with hold_axial = 0."""
         if isinstance(seconds, bool) or not (isinstance(seconds, (int, float, np.integer, np.floating))
                                              and 0 <= seconds < math.inf):

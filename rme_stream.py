@@ -261,11 +261,11 @@ class Streaming:
         moving: the arm is slower than monitor_slow[0] but not calm (returning after a push, say): the level over the
         last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] (monitor_far
         while an estimate at rest is due: friction during the creep after a compensation is its to judge) from the
-        level explained at this pose and off the flange's line (a press is judged at rest), and refined once the arm
-        rests; at a pose where no level was explained, of more than monitor_far from the nearest level known (no
-        payload if none is: an arm never calm yet). Nothing is kept from such a check (friction still holds a few
-        tenths of a Nm) but a level whose estimate was refused: not tried again while it stays (the check at rest
-        judges it once the arm is calm)."""
+        level explained at this pose and off the flange's line (a press is judged at rest; on it too while the task
+        expects a change: RME.expect_change), and refined once the arm rests; at a pose where no level was
+        explained, of more than monitor_far from the nearest level known (no payload if none is: an arm never calm
+        yet). Nothing is kept from such a check (friction still holds a few tenths of a Nm) but a level whose estimate
+        was refused: not tried again while it stays (the check at rest judges it once the arm is calm)."""
         s = self.settings
         span = s.window if moving else s.monitor_window               # the residual's means from the detector's
         level, recent = self.detector.recent_mean(span), self.detector.recent_mean(span // 3)   # sums: O(1)
@@ -283,7 +283,7 @@ class Streaming:
             least = s.monitor_slow[1] if self._refine is None and kind == "level" else s.monitor_far   # with an
             if (np.linalg.norm(level - trusted) <= least                         # estimate at rest due, only a new
                     or same(self._lv.muted.at(q)) or same(self._slow_rejected.at(q))   # change, not its creep
-                    or through_flange(J, level - trusted, s.axial_radius[0])
+                    or (self._k >= self._expected and through_flange(J, level - trusted, s.axial_radius[0]))
                     or not self._payload_like(level - trusted, gate, (Y, J))):
                 return
             verdict = (trusted, kind)

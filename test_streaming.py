@@ -28,11 +28,11 @@ def within(m_hat, m):
     return abs(m_hat - m) <= max(0.1 * m, 0.05)
 
 
-def _synthetic(settings, bias, seconds, load=None, t_load=0.0, move=None, drift=None, seed=8):
+def _synthetic(settings, bias, seconds, load=None, t_load=0.0, move=None, drift=None, seed=8, expect=None):
     """A synthetic stream at the ready pose: tau_ext = bias (None: drawn, 0.1 Nm per joint) + noise, plus the payload
     `load` theta (4,) from t_load, plus from t0 a payload-shaped drift of `offset` [Nm] along the payload theta_d,
     ramped in over 0.1 s, if drift = (theta_d, offset, t0); joint j moving at w rad/s over [t0, t1) if move =
-    (j, w, t0, t1). The RME after `seconds`."""
+    (j, w, t0, t1); RME.expect_change(s) called at t if expect = (t, s). The RME after `seconds`."""
     from dynamics import phi_of
     robot, rng = Robot.panda(), np.random.default_rng(seed)
     est, q = RME(robot, settings=settings, rng=np.random.default_rng(seed + 1)), Q_READY.copy()
@@ -52,6 +52,8 @@ def _synthetic(settings, bias, seconds, load=None, t_load=0.0, move=None, drift=
             tau = tau + Y @ phi
         if drift is not None and t >= drift[2]:
             tau = tau + min(1.0, (t - drift[2]) / 0.1) * scale * (Y @ d_phi)
+        if expect is not None and k == int(round(expect[0] * 1000)):
+            est.expect_change(expect[1])
         est.update(q, dq + rng.normal(0.0, 1e-3, robot.n), tau)
     return est
 
