@@ -68,8 +68,8 @@ class RME(Streaming):
         """The task expects a load change within `seconds` from now (it closes or opens the gripper): a change that
         adds a force through the flange's line (a load centred below the hand, as a grasped object mostly is) is
         then estimated at its detection (or by the monitor's check of a slow arm), not held as a possible press
-        (RMESettings.hold_axial). A person pressing on
-        the hand meanwhile is taken for the load it looks like, as with hold_axial = 0."""
+        (RMESettings.hold_axial). A person pressing on the hand meanwhile is taken for the load it looks like, as
+        with hold_axial = 0."""
         if isinstance(seconds, bool) or not (isinstance(seconds, (int, float, np.integer, np.floating))
                                              and 0 <= seconds < math.inf):
             raise ValueError(f"seconds: expected a finite time >= 0 s, found {seconds!r}")
@@ -207,7 +207,8 @@ class RME(Streaming):
     def _apply(self, e, level, Y, J):
         """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
         (q, residual level) the new compensation should leave at pose q (its reference), or None."""
-        self._lv.muted, self._lv.rejected = LevelMap(self.settings.pose_tolerance), None   # judged before it
+        self._lv.muted, self._lv.rejected = LevelMap(self.settings.pose_tolerance), None   # judged before it; the
+        self._lv.doubtful = False                         # levels are now what a compensation was accepted against
         if level is not None:
             self._lv.explained.put(*level)
         theta = safe_theta(e.mean, self.theta, self.settings.max_mass)

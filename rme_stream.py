@@ -81,9 +81,10 @@ class Levels:
         followed; judged before; no payload), "new" at a pose never seen (taken as explained) unless the level is more
         than `far` [Nm] from the nearest level known (no sensor bias reaches that: a change missed while a push moved
         the arm), else (reference, kind) to estimate against: kind "first" (the very first level, against no
-        payload), "level" (the level explained here) or "far". A first level that is no payload yet more than `far`
-        from zero (a person holding the arm from the start, a tool) is doubtful: a later level that is no payload
-        against it but a clear one against none replaces it, as a new first level."""
+        payload), "level" (the level explained here), "far", or "renewed": a first level that is no payload yet more
+        than `far` from zero (a person holding the arm from the start, a tool) is doubtful (take_bias); a later level
+        that is no payload against it but a clear one against none is estimated against none, as a new first level,
+        and every level explained so far, at every pose, is forgotten."""
         near = lambda a, b: b is not None and np.linalg.norm(a - b) <= self.threshold
         trusted, first = self.explained.at(q), len(self.explained) == 0
         if near(level, self.muted.at(q)):
@@ -103,15 +104,20 @@ class Levels:
         reference = np.zeros(len(level)) if first else trusted
         if is_payload(level - reference, gates[0] if first else gates[1], first):
             return reference, kind
-        if first:                                                      # the bias; or e.g. a person holding the arm:
-            self.explained.put(q, level)                               #   no sensor's bias is `far` from zero
-            self.doubtful = bool(np.linalg.norm(level) > far)
+        if first:
+            self.take_bias(q, level, far)                              # the bias; or e.g. a person holding the arm
         elif self.doubtful and is_payload(level, gates[0], True):      # a clear payload against none at all: that
             self.explained, self.doubtful = LevelMap(self.tolerance), False   # first level was no bias (a push)
-            return np.zeros(len(level)), "first"
+            return np.zeros(len(level)), "renewed"
         else:
             self.muted.put(q, level)
         return None
+
+    def take_bias(self, q, level, far):
+        """Keep the first level (n,) at pose q as the sensor's bias; doubtful if more than `far` [Nm] from zero, which no
+        sensor's bias is (a person holding the arm, a tool held from the start)."""
+        self.explained.put(q, level)
+        self.doubtful = bool(np.linalg.norm(level) > far)
 
     def bias(self, R_ref, q_ref):
         """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
@@ -300,10 +306,10 @@ class Streaming:
         if verdict is None:
             self._held = None
         held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
-        if verdict is None or verdict == "new" or (not moving and self._held_back(level - verdict[0], J, self._k - span,
-                                                                                  1)):   # again at rest (see then)
-            return
-        (reference, kind), first = verdict, verdict[1] == "first"
+        if verdict is None or verdict == "new" or (not moving and self._held_back(   # again at rest (see then);
+                level - verdict[0], J, self._k - span, int(verdict[1] not in ("first", "renewed")))):   # against none
+            return                                      # the bias bends a press's wrench as friction does: wider line
+        (reference, kind), first = verdict, verdict[1] in ("first", "renewed")
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first or kind == "blank":             # against no payload: only a clear payload counts
             accept = lambda e, Tw, Y: e.explained >= first_gate
@@ -316,7 +322,7 @@ class Streaming:
             if e.accepted and first:                                   # what the payload leaves is the bias
                 self._pending[2] = (q, TAU[-s.window:].mean(axis=0) - Y @ vi.phi_of(e.mean))
             elif first:
-                self._lv.explained.put(q, level)                             # no payload: the level is the bias
+                self._lv.take_bias(q, level, s.monitor_far)                # no payload: the level is the bias
                 self.history.pop()                                     # (establishing it is not an estimate)
             elif kind == "far" and not moving:                         # (moving: friction in the level)
                 self._leaves(q, level)(e) if e.accepted else self._lv.muted.put(q, level)
