@@ -208,7 +208,7 @@ class RME(Streaming):
         """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
         (q, residual level) the new compensation should leave at pose q (its reference), or None."""
         self._lv.muted, self._lv.rejected = LevelMap(self.settings.pose_tolerance), None   # judged before it; the
-        self._lv.doubtful = False                         # levels are now what a compensation was accepted against
+        self._lv.doubtful = self._lv.renewing = False     # levels are now what a compensation was accepted against
         if level is not None:
             self._lv.explained.put(*level)
         theta = safe_theta(e.mean, self.theta, self.settings.max_mass)

@@ -62,6 +62,7 @@ class Levels:
         self.tolerance, self.threshold = tolerance, threshold
         self.explained, self.muted, self.rejected = LevelMap(tolerance), LevelMap(tolerance), None
         self.doubtful = False          # the first level, taken as the bias, is no payload but too far from zero for one
+        self.renewing = False          # no level explained since a doubtful one was forgotten: each is "renewed"
 
     def undone(self, q, level) -> bool:
         """Whether the residual `level` at pose q is back within `threshold` of the level before the last rejected
@@ -84,12 +85,13 @@ class Levels:
         payload), "level" (the level explained here), "far", or "renewed": a first level that is no payload yet more
         than `far` from zero (a person holding the arm from the start, a tool) is doubtful (take_bias); a later level
         that is no payload against it but a clear one against none is estimated against none, as a new first level,
-        and every level explained so far, at every pose, is forgotten."""
+        and every level explained so far, at every pose, is forgotten (until a level is kept again, each is
+        "renewed")."""
         near = lambda a, b: b is not None and np.linalg.norm(a - b) <= self.threshold
         trusted, first = self.explained.at(q), len(self.explained) == 0
         if near(level, self.muted.at(q)):
             return None                                                # judged before: not a payload
-        kind = "first" if first else "level"
+        kind = ("renewed" if self.renewing else "first") if first else "level"
         if not first and trusted is None:
             trusted, kind = self.explained.at(q, anywhere=True), "far"
             if np.linalg.norm(level - trusted) <= far:
@@ -107,8 +109,8 @@ class Levels:
         if first:
             self.take_bias(q, level, far)                              # the bias; or e.g. a person holding the arm
         elif self.doubtful and is_payload(level, gates[0], True):      # a clear payload against none at all: that
-            self.explained, self.doubtful = LevelMap(self.tolerance), False   # first level was no bias (a push)
-            return np.zeros(len(level)), "renewed"
+            self.explained, self.doubtful, self.renewing = LevelMap(self.tolerance), False, True   # first level was
+            return np.zeros(len(level)), "renewed"                                                 # no bias (a push)
         else:
             self.muted.put(q, level)
         return None
@@ -117,7 +119,7 @@ class Levels:
         """Keep the first level (n,) at pose q as the sensor's bias; doubtful if more than `far` [Nm] from zero, which no
         sensor's bias is (a person holding the arm, a tool held from the start)."""
         self.explained.put(q, level)
-        self.doubtful = bool(np.linalg.norm(level) > far)
+        self.doubtful, self.renewing = bool(np.linalg.norm(level) > far), False
 
     def bias(self, R_ref, q_ref):
         """What tau_ext holds beyond the compensated payload before a change: the mean residual of the reference
@@ -307,8 +309,8 @@ class Streaming:
             self._held = None
         held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
         if verdict is None or verdict == "new" or (not moving and self._held_back(   # again at rest (see then);
-                level - verdict[0], J, self._k - span, int(verdict[1] not in ("first", "renewed")))):   # against none
-            return                                      # the bias bends a press's wrench as friction does: wider line
+                level - verdict[0], J, self._k - span, int(verdict[1] != "renewed"))):   # against none after a doubtful
+            return                  # level, whose bias bends a press's wrench as friction does: the wider line
         (reference, kind), first = verdict, verdict[1] in ("first", "renewed")
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first or kind == "blank":             # against no payload: only a clear payload counts

@@ -261,8 +261,8 @@ def test_an_explained_level_follows_a_slow_drift_only_as_far_as_the_threshold_fr
 def test_a_first_level_far_from_zero_that_is_no_payload_is_replaced_by_a_clear_payload_against_none():
     """Levels.judge: the first level is no payload and 17 Nm from zero (a person holding the arm at start-up), so it
     is taken for the bias but doubtful; a later level that is no payload against it yet a clear one against none
-    (tested as such: none=True) is estimated against no payload as a new first level ("renewed"), and the doubtful
-    level is forgotten. A first level within `far` of zero is a plausible bias: the same later level is only muted."""
+    (tested as such: none=True) is estimated against no payload as a new first level ("renewed", as every level
+    is until one is kept again), and the doubtful level is forgotten. A first level within `far` of zero is a plausible bias: the same later level is only muted."""
     from rme_stream import Levels
     q, push = np.zeros(7), np.array([3.0, 12.0, -2.0, 10.0, 1.0, 4.0, 0.5])
     load = np.array([0.0, 8.0, 0.0, -6.0, 0.0, 1.0, 0.0])
@@ -276,7 +276,10 @@ def test_a_first_level_far_from_zero_that_is_no_payload_is_replaced_by_a_clear_p
         if doubtful:
             reference, kind = verdict
             assert kind == "renewed" and np.all(reference == 0) and asked[-1] == (load.tolist(), 0.97, True)
-            assert len(lv.explained) == 0 and not lv.doubtful
+            assert len(lv.explained) == 0 and not lv.doubtful and lv.renewing
+            assert lv.judge(q, load, is_payload, (0.97, 0.9), far=2.0)[1] == "renewed"   # still against none, until
+            lv.take_bias(q, 0.1 * push / np.linalg.norm(push), far=2.0)                     # a level is kept again
+            assert not lv.renewing and not lv.doubtful
         else:
             assert verdict is None and np.array_equal(lv.muted.at(q), load) and len(asked) == 2
 
