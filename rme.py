@@ -50,7 +50,8 @@ class RME(Streaming):
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta, self._phi = np.zeros(4), np.zeros(4)   # the estimate compensated; its phi = (m, m r) (1 kHz loop)
-        self._pending = None                           # (sample index when it applies, Estimate)
+        self._undo = None                              # phi compensated before the change theta answers (_on_line)
+        self._pending = None                           # (sample index when it applies, Estimate, level, theta before)
         self._refine, self._still, self._calm, self._slow = None, 0, 0, 0   # a pending estimate at rest; samples
                                                        #   the arm has been still, slower than monitor_speed, than
                                                        #   monitor_slow[0]
@@ -183,7 +184,7 @@ class RME(Streaming):
             r = self._refine                           # (a held change is estimated once it has lasted, moving or not)
             if self._still >= s.window or (calm and self._k > r["deadline"] - s.rate / 2) or (r.get("held") and (
                     self._k - r["since"] >= s.hold_axial * s.rate or self._k < self._expected)):   # or expected now
-                self._on_rest(J)
+                self._on_rest(Y, J)
             elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
                 self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
             elif check and slow and not r.get("held"):
@@ -204,15 +205,17 @@ class RME(Streaming):
         s = self.settings
         return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
 
-    def _apply(self, e, level, Y, J):
+    def _apply(self, e, level, before, Y, J):
         """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
-        (q, residual level) the new compensation should leave at pose q (its reference), or None."""
+        (q, residual level) the new compensation should leave at pose q (its reference), or None; before: the estimate
+        compensated before the change e answers (None: not known)."""
         self._lv.muted, self._lv.rejected = LevelMap(self.settings.pose_tolerance), None   # judged before it; the
         self._lv.doubtful = self._lv.renewing = False     # levels are now what a compensation was accepted against
         if level is not None:
             self._lv.explained.put(*level)
         theta = safe_theta(e.mean, self.theta, self.settings.max_mass)
         d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
+        self._undo = None if before is None else vi.phi_of(before)
         self.theta, self._phi = theta, vi.phi_of(theta)
         self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
         self._r -= d                                                   # the arm is near this pose over the buffer
@@ -262,7 +265,8 @@ class RME(Streaming):
         if e.accepted:                     # with an executor, on the sample after the job is found done
             self._evidence = (self._evidence + [(Qw, Tw, bias)])[-4:] if kind == "accumulated" else [(Qw, Tw, bias)]
             delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
-            self._pending = [self._k + delay if self.executor is None else self._k + 1, e, level]   # from now
+            self._pending = [self._k + delay if self.executor is None else self._k + 1, e, level,    # from now
+                             theta_before if kind in ("detection", "at rest") else None]
         then(e, Ybar)
 
 

@@ -171,7 +171,7 @@ class Streaming:
         _, R, J = self.robot.kinematics(Q[-1])
         YJ, rest = (self.robot.payload_regressor_from(J, R), J), int(np.abs(self._dq).max() < s.monitor_speed)
         if held is not None and self._payload_like(level - held["bias"], s.min_explained, YJ, before[0]) and \
-                self._held_back(level - held["bias"], J, held["since"], rest):
+                self._held_back(level - held["bias"], YJ, held["since"], rest):
             self._refine = dict(held, window=(Q[-w:], TAU[-w:]), level=level, asked=asked)
             return                         # the held press, moved a little (the arm yielding to it): still held
         if not self._payload_like(level - bias, s.min_explained, YJ, before[0]):
@@ -179,7 +179,7 @@ class Streaming:
             return                         # a push, a bias step
         yield
         known = None if np.linalg.norm(bias) > s.monitor_far else (q_ref, bias)    # the level to leave, unless pushed
-        if self._held_back(level - bias, J, asked - w, rest):
+        if self._held_back(level - bias, YJ, asked - w, rest):
             self.changes_held, self._lv.rejected = self.changes_held + 1, (q_ref, bias)
             self._refine = dict(bias=bias, known=known, before=before, held=True, since=self._held,   # judged
                                 resume=pending if held is None else held["resume"],                     # again at
@@ -199,9 +199,9 @@ class Streaming:
                 self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
         self._change(Qw, TAU[-w:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
 
-    def _on_rest(self, J):
+    def _on_rest(self, Y, J):
         """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part
-        of the load). A change held at the detection (_held_back, J: update's): released, still held, estimated, or
+        of the load). A change held at the detection (_held_back; Y, J: update's): released, still held, estimated, or
         (the arm moving, the level moved far from it) gone."""
         s, r, keep = self.settings, self._refine, len(self._r)
         rest = self._still >= s.window or self._calm >= s.monitor_window
@@ -218,7 +218,7 @@ class Streaming:
                 if not rest:
                     return
             elif self._k - r["since"] < s.hold_axial * s.rate and self._k >= self._expected and \
-                    through_flange(J, level - r["bias"], s.axial_radius[1]):
+                    self._on_line(level - r["bias"], (Y, J), s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
         self._refine, self._held = None, None
         if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
@@ -253,7 +253,7 @@ class Streaming:
             w.t, w.kind, w.accepted = e.t, "withdrawn", True
             w.reason = f"at rest the change is no payload ({e.reason}): back to the estimate before it"
             self.history.append(w)
-            self._pending = [self._k, w, None]
+            self._pending = [self._k, w, None, None]
         return then
 
     def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
@@ -291,7 +291,7 @@ class Streaming:
             least = s.monitor_slow[1] if self._refine is None and kind == "level" else s.monitor_far   # with an
             if (np.linalg.norm(level - trusted) <= least                         # estimate at rest due, only a new
                     or same(self._lv.muted.at(q)) or same(self._slow_rejected.at(q))   # change, not its creep
-                    or (self._k >= self._expected and through_flange(J, level - trusted, s.axial_radius[0]))
+                    or (self._k >= self._expected and self._on_line(level - trusted, (Y, J), s.axial_radius[0]))
                     or not self._payload_like(level - trusted, gate, (Y, J))):
                 return
             verdict = (trusted, kind)
@@ -309,7 +309,7 @@ class Streaming:
             self._held = None
         held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
         if verdict is None or verdict == "new" or (not moving and self._held_back(   # again at rest (see then);
-                level - verdict[0], J, self._k - span, int(verdict[1] != "renewed"))):   # against none after a doubtful
+                level - verdict[0], (Y, J), self._k - span, int(verdict[1] != "renewed"))):   # against none after a doubtful
             return                  # level, whose bias bends a press's wrench as friction does: the wider line
         (reference, kind), first = verdict, verdict[1] in ("first", "renewed")
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
@@ -341,16 +341,29 @@ class Streaming:
         if not moving:
             self._calm = 0
 
-    def _held_back(self, d, J, since, rest) -> bool:
-        """Whether a payload-like change d (n,) waits: it adds a downward force through the flange (through_flange, J
-        the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less than hold_axial
-        since self._held (set to `since`, the sample it began by, if None; cleared when such a change goes)."""
+    def _held_back(self, d, YJ, since, rest) -> bool:
+        """Whether a payload-like change d (n,) waits: it may be a hand on the flange (_on_line; YJ: the payload
+        regressor and the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less than
+        hold_axial since self._held (set to `since`, the sample it began by, if None; cleared when such a change goes)."""
         s = self.settings
-        if s.hold_axial <= 0 or self._k < self._expected or not through_flange(J, d, s.axial_radius[rest]):
+        if s.hold_axial <= 0 or self._k < self._expected or not self._on_line(d, YJ, s.axial_radius[rest]):
             self._held = None                                          # (a change the task expects: not held)
             return False
         self._held = since if self._held is None else self._held
         return self._k - self._held < s.hold_axial * s.rate
+
+    def _on_line(self, d, YJ, radius) -> bool:
+        """Whether a change d (n,) may be a person's hand on the flange: it adds a downward force whose line passes
+        within `radius` of it (through_flange: a press, or a load centred below the flange), unless it takes the
+        compensation back to the estimate before the change it answers (within a quarter): the end of that change, as
+        when a person lets go of a load they had lifted by the hand (read as part of it gone). YJ: the payload
+        regressor and the flange's Jacobian."""
+        if self._undo is not None:
+            back = YJ[0] @ (self._undo - self._phi)
+            if np.linalg.norm(back) > self.settings.monitor_threshold and \
+                    np.linalg.norm(d - back) <= 0.25 * np.linalg.norm(back):
+                return False
+        return through_flange(YJ[1], d, radius)
 
     def _leaves(self, q, level):
         """then(e, Y) for an estimate at pose q, residual level `level` now: once accepted, what it leaves is explained."""
