@@ -201,9 +201,12 @@ class Streaming:
 
     def _on_rest(self, Y, J):
         """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part
-        of the load). A change held at the detection (_held_back; Y, J: update's): released, still held, estimated, or
-        (the arm moving, the level moved far from it) gone."""
+        of the load), once the level is a payload change again (not while a push holds the resting arm). A change held
+        at the detection (_held_back; Y, J: update's): released, still held, estimated, or (the arm moving, the level
+        moved far from it) gone."""
         s, r, keep = self.settings, self._refine, len(self._r)
+        if self._k < r.get("recheck", 0):
+            return
         rest = self._still >= s.window or self._calm >= s.monitor_window
         if r.get("held"):                                              # every 10th sample, from the running sums
             if self._k % 10:
@@ -229,6 +232,11 @@ class Streaming:
                 r, held=False, deadline=self._k + int(s.refine_within * s.rate)))
             return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"],
                                 asked=r["asked"])             # its time (Estimate.t): the end of that window
+        change = self.detector.recent_mean(s.window) + Y @ (self._phi - vi.phi_of(r["before"])) - r["bias"]
+        if not self._payload_like(change, s.min_explained, (Y, J), r["before"][0]):   # no payload (a push on the arm):
+            if self._k <= r["deadline"] + 2 * s.refine_within * s.rate:   # again in 10 samples, until the time a
+                self._refine = dict(r, recheck=self._k + 10)           #   moving arm is given (then the monitor's)
+            return
         Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", self._withdraw(r["before"]),
                      level=r["known"])

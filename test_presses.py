@@ -79,6 +79,17 @@ def test_a_lift_by_the_hand_read_as_part_of_the_load_gone_is_undone_at_its_relea
     assert within(rec.theta_hat[rec.at(2.5 + seconds + 0.6), 0], 2.0)
 
 
+def test_the_estimate_at_rest_waits_while_a_push_holds_the_resting_arm():
+    """A 2 kg load read 1.87 kg at its detection, then a 14 N push, down and 6 N sideways, from before the arm rests
+    until 3.5 s: the change from before the load is then no payload (its force is not vertical), so the estimate at
+    rest waits for the push's end and reads 2.0 kg. Made during the push it read 3.07 kg and was applied for 1.5 s."""
+    push = Push(1.5, (-5.0, 3.6, -12.7), 2.0, body="link7", offset=(0.0, 0.0, 0.107))
+    rec, est = hold(5, 5.0, [PayloadChange(1.0, 2.0, (0.03, -0.02, 0.1)), push])
+    assert rec.theta_hat[rec.at(1.5):rec.at(3.5), 0].max() < 2.0, [(e.t, e.kind, e.mean[0]) for e in est.history]
+    (e,) = [e for e in est.history if e.kind == "at rest"]
+    assert e.accepted and e.t > 3.5 and abs(e.mean[0] - 2.0) < 0.05
+
+
 def test_a_press_while_a_loads_estimate_at_rest_is_pending_keeps_that_estimate():
     """An off-axis 1 kg load read 7 % light at its detection, then a 20 N press through the flange for 1 s before the
     arm rests: the press is held and released, and the load's estimate at rest still comes (without the press it
