@@ -233,7 +233,8 @@ class Streaming:
             return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"],
                                 asked=r["asked"])             # its time (Estimate.t): the end of that window
         change = self.detector.recent_mean(s.window) + Y @ (self._phi - vi.phi_of(r["before"])) - r["bias"]
-        if not self._payload_like(change, s.min_explained, (Y, J), r["before"][0]):   # no payload (a push on the arm):
+        if np.linalg.norm(change) > s.monitor_threshold and not self._payload_like(   # not gone, but no payload (a
+                change, s.min_explained, (Y, J), r["before"][0]):                   #   push holds the resting arm):
             if self._k <= r["deadline"] + 2 * s.refine_within * s.rate:   # again in 10 samples, until the time a
                 self._refine = dict(r, recheck=self._k + 10)           #   moving arm is given (then the monitor's)
             return
