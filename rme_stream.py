@@ -201,9 +201,9 @@ class Streaming:
 
     def _on_rest(self, Y, J):
         """Once the arm is still for a window after a detection, estimate again from it (friction no longer holds part
-        of the load), once the level is a payload change again (not while a push holds the resting arm). A change held
-        at the detection (_held_back; Y, J: update's): released, still held, estimated, or (the arm moving, the level
-        moved far from it) gone."""
+        of the load), unless the change is still there but no payload (a push holds the resting arm: then later). A
+        change held at the detection (_held_back; Y, J: update's): released, still held, estimated, or (the arm moving,
+        the level moved far from it) gone."""
         s, r, keep = self.settings, self._refine, len(self._r)
         if self._k < r.get("recheck", 0):
             return
@@ -318,8 +318,9 @@ class Streaming:
             self._held = None
         held, before = self._held is not None, self.theta.copy()    # a change held that is let go now: estimated
         if verdict is None or verdict == "new" or (not moving and self._held_back(   # again at rest (see then);
-                level - verdict[0], (Y, J), self._k - span, int(verdict[1] != "renewed"))):   # against none after a doubtful
-            return                  # level, whose bias bends a press's wrench as friction does: the wider line
+                level - verdict[0], (Y, J), self._k - span, int(verdict[1] != "renewed"))):
+            return                  # against none after a doubtful level, whose bias bends a press's wrench as
+                                    #   friction does: the wider line
         (reference, kind), first = verdict, verdict[1] in ("first", "renewed")
         Q, TAU, _ = self._buffer()               # the window to estimate on (correction applied)
         if first or kind == "blank":             # against no payload: only a clear payload counts
@@ -352,8 +353,9 @@ class Streaming:
 
     def _held_back(self, d, YJ, since, rest) -> bool:
         """Whether a payload-like change d (n,) waits: it may be a hand on the flange (_on_line; YJ: the payload
-        regressor and the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less than
-        hold_axial since self._held (set to `since`, the sample it began by, if None; cleared when such a change goes)."""
+        regressor and the flange's Jacobian; rest 0/1: the arm moves/rests, picks axial_radius) and has lasted less
+        than hold_axial since self._held (set to `since`, the sample it began by, if None; cleared when such a change
+        goes)."""
         s = self.settings
         if s.hold_axial <= 0 or self._k < self._expected or not self._on_line(d, YJ, s.axial_radius[rest]):
             self._held = None                                          # (a change the task expects: not held)
