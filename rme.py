@@ -50,7 +50,7 @@ class RME(Streaming):
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta, self._phi = np.zeros(4), np.zeros(4)   # the estimate compensated; its phi = (m, m r) (1 kHz loop)
-        self._undo = None                              # phi compensated before the change theta answers (_on_line)
+        self._undo = None                              # (phi before the change theta answers, until): _on_line
         self._pending = None                           # (sample index when it applies, Estimate, level, theta before)
         self._refine, self._still, self._calm, self._slow = None, 0, 0, 0   # a pending estimate at rest; samples
                                                        #   the arm has been still, slower than monitor_speed, than
@@ -215,7 +215,8 @@ class RME(Streaming):
             self._lv.explained.put(*level)
         theta = safe_theta(e.mean, self.theta, self.settings.max_mass)
         d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
-        self._undo = None if before is None else vi.phi_of(before)
+        lift = before is not None and before[0] > theta[0] >= 0.1      # part of the load gone, part still there
+        self._undo = (vi.phi_of(before), self._k + int(self.settings.hold_axial * self.settings.rate)) if lift else None
         self.theta, self._phi = theta, vi.phi_of(theta)
         self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
         self._r -= d                                                   # the arm is near this pose over the buffer

@@ -365,12 +365,13 @@ class Streaming:
 
     def _on_line(self, d, YJ, radius) -> bool:
         """Whether a change d (n,) may be a person's hand on the flange: it adds a downward force whose line passes
-        within `radius` of it (through_flange: a press, or a load centred below the flange), unless it takes the
-        compensation back to the estimate before the change it answers (within a quarter): the end of that change, as
-        when a person lets go of a load they had lifted by the hand (read as part of it gone). YJ: the payload
-        regressor and the flange's Jacobian."""
-        if self._undo is not None:
-            back = YJ[0] @ (self._undo - self._phi)
+        within `radius` of it (through_flange: a press, or a load centred below the flange), unless, within hold_axial
+        of a change read as part of the load gone (at least 0.1 kg left), it takes the compensation back to the
+        estimate before that change (within a quarter): its end, as when a person lets go of a load they had lifted
+        by the hand. (After a whole load is gone, a press like it is still held.) YJ: the payload regressor and the
+        flange's Jacobian."""
+        if self._undo is not None and self._k <= self._undo[1]:
+            back = YJ[0] @ (self._undo[0] - self._phi)
             if np.linalg.norm(back) > self.settings.monitor_threshold and \
                     np.linalg.norm(d - back) <= 0.25 * np.linalg.norm(back):
                 return False
