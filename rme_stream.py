@@ -232,12 +232,14 @@ class Streaming:
                 r, held=False, deadline=self._k + int(s.refine_within * s.rate)))
             return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"],
                                 asked=r["asked"])             # its time (Estimate.t): the end of that window
-        change = self.detector.recent_mean(s.window) + Y @ (self._phi - vi.phi_of(r["before"])) - r["bias"]
+        level = self.detector.recent_mean(s.window)
+        change = level + Y @ (self._phi - vi.phi_of(r["before"])) - r["bias"]
         if np.linalg.norm(change) > s.monitor_threshold and not self._payload_like(   # not gone, but no payload (a
                 change, s.min_explained, (Y, J), r["before"][0]):                   #   push holds the resting arm):
-            if self._k <= r["deadline"] + 2 * s.refine_within * s.rate:   # again in 10 samples, until the time a
-                self._refine = dict(r, recheck=self._k + 10)           #   moving arm is given (then the monitor's)
-            return
+            if self._k <= r["deadline"] + 2 * s.refine_within * s.rate and not self._gone(   # again in 10 samples,
+                    level, Y, self._q[(self._k - 1) % keep]):          # until the time a moving arm is given; or
+                self._refine = dict(r, recheck=self._k + 10)           # the reference held a push, now gone, and
+            return                                                     # so is the load: the monitor's
         Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", self._withdraw(r["before"]),
                      level=r["known"])
@@ -250,20 +252,30 @@ class Streaming:
         gap = np.linalg.norm(level - r["bias"] - self.robot.payload_regressor(q) @ phi)
         return bool(gap > max(self.settings.monitor_far, 0.25 * np.linalg.norm(d)))
 
-    def _withdraw(self, before):
+    def _withdraw(self, before, level=None, why=None):
         """then(e, Y) for an estimate at rest: if e finds the change beyond what the arm carries (a press far out, read
         as a plausible load at the detection), the compensation goes back to `before`, the estimate before the change
-        (an Estimate of kind "withdrawn" in history)."""
+        (an Estimate of kind "withdrawn" in history). With `why`: whenever e is refused; level: see _apply."""
         def then(e, Y):
-            if e.accepted or self._plausible(e.mean) or np.array_equal(self.theta, before):
+            if e.accepted or (why is None and self._plausible(e.mean)) or np.array_equal(self.theta, before):
                 return
             w = Estimate(mean=np.array(before, dtype=float), std=np.zeros(4), cov=np.zeros((4, 4)), prior=e.prior,
                          observed=np.zeros(4, dtype=bool), seconds=0.0, iterations=0, converged=True)
             w.t, w.kind, w.accepted = e.t, "withdrawn", True
-            w.reason = f"at rest the change is no payload ({e.reason}): back to the estimate before it"
+            w.reason = why or f"at rest the change is no payload ({e.reason}): back to the estimate before it"
             self.history.append(w)
-            self._pending = [self._k, w, None, None]
+            self._pending = [self._k, w, level, None]
         return then
+
+    def _gone(self, level, Y, q) -> bool:
+        """Whether the compensated payload is no longer there: the residual `level` (n,) at pose q (Y: its payload
+        regressor) is more than monitor_far from zero and from the level explained there, while tau_ext itself
+        (level + the compensation) is nearer zero and within monitor_far, as a sensor's bias is (a load removed while
+        a push hid the change, after a reference taken during a push)."""
+        s, known = self.settings, self._lv.explained.at(q)
+        far, bare = np.linalg.norm(level), np.linalg.norm(level + Y @ self._phi)
+        return bool(self.theta[0] > 0 and far > s.monitor_far and bare < min(s.monitor_far, far) and (
+            known is None or np.linalg.norm(level - known) > s.monitor_far))
 
     def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
         r, s = held["resume"], self.settings
@@ -290,6 +302,18 @@ class Streaming:
             return                                                     # still changing: not a level yet
         q = self._q[(self._k - span + np.arange(span)) % len(self._q)].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
+        if not moving and self._gone(level, Y, q):   # against no payload at all: a clear payload, else none left
+            Q, TAU, _ = self._buffer()
+            bare, none = TAU[-s.window:].mean(axis=0), np.zeros(4)
+            gone = self._withdraw(none, (q, bare), "at rest tau_ext is a sensor's bias, not the payload compensated")
+            def keep(e, Y):
+                if e.accepted:                   # a payload after all, estimated against none: it leaves the bias
+                    self._pending[2] = (q, bare - Y @ vi.phi_of(e.mean))
+                gone(e, Y)
+            self._change(Q[-s.window:], TAU[-s.window:], np.zeros(len(level)), none, "monitor", keep,
+                         lambda e, Tw, Y: e.explained >= s.first_explained)
+            self._calm = 0
+            return
         if moving:
             trusted, kind, gate = self._lv.explained.at(q), "level", s.min_explained
             if trusted is None:                  # a pose never seen (a push moved the arm): against the nearest
