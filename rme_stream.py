@@ -116,8 +116,8 @@ class Levels:
         return None
 
     def take_bias(self, q, level, far):
-        """Keep the first level (n,) at pose q as the sensor's bias; doubtful if more than `far` [Nm] from zero, which no
-        sensor's bias is (a person holding the arm, a tool held from the start)."""
+        """Keep the first level (n,) at pose q as the sensor's bias; doubtful if more than `far` [Nm] from zero,
+        which no sensor's bias is (a person holding the arm, a tool held from the start)."""
         self.explained.put(q, level)
         self.doubtful, self.renewing = bool(np.linalg.norm(level) > far), False
 
@@ -140,8 +140,8 @@ class Streaming:
     def _payload_like(self, d, gate, YJ, mass=None, side=PAYLOAD_SIDE) -> bool:
         """detector.payload_like for a residual change d (n,) at a pose with payload regressor and Jacobian YJ, from
         the payload mass compensated (now)."""
-        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1], 1.2 * self.settings.max_mass,
-                            side)
+        return payload_like(YJ[0], d, self.theta[0] if mass is None else mass, gate, YJ[1],
+                            1.2 * self.settings.max_mass, side)
 
     def _on_detection(self, asked=None):
         """Estimate the total payload from the newest window, referred to the torque before the change. An accepted
@@ -196,7 +196,8 @@ class Streaming:
             if e.accepted:                 # a rejected detection (the arm answering a compensation) keeps the last
                 self._refine = None        #   pending estimate at rest
             if e.accepted and s.refine:
-                self._refine = dict(bias=bias, known=known, before=before, deadline=self._k + int(s.refine_within * s.rate))
+                self._refine = dict(bias=bias, known=known, before=before,
+                                    deadline=self._k + int(s.refine_within * s.rate))
         self._change(Qw, TAU[-w:], bias, before, "detection", then, asked=asked, level=known, Tw=Tw)
 
     def _on_rest(self, Y, J):
@@ -351,7 +352,8 @@ class Streaming:
             accept = lambda e, Tw, Y: e.explained >= first_gate
         else:                                    # the new estimate must make the level consistent again: within
             gap = np.linalg.norm(level - reference)  # 6 % of a large gap (a heavy load's sag moves the bias); far from
-            tol = 0.25 * gap if kind == "far" else min(max(s.monitor_threshold, 0.06 * gap), 0.5 * gap)   # any pose: 3/4
+            tol = 0.25 * gap if kind == "far" else min(max(s.monitor_threshold, 0.06 * gap),   # any pose: 3/4
+                                                       0.5 * gap)
             accept = lambda e, Tw, Ybar: np.linalg.norm(Tw.mean(axis=0) - Ybar @ vi.phi_of(safe_theta(
                 e.mean, self.theta, s.max_mass))) <= tol
         def then(e, Y):
@@ -402,7 +404,8 @@ class Streaming:
         return through_flange(YJ[1], d, radius)
 
     def _leaves(self, q, level):
-        """then(e, Y) for an estimate at pose q, residual level `level` now: once accepted, what it leaves is explained."""
+        """then(e, Y) for an estimate at pose q, residual level `level` now: once accepted, what it leaves is
+        explained."""
         Yq, phi = self.robot.payload_regressor(q), self._phi.copy()
         return lambda e, Y=None: e.accepted and self._lv.explained.put(q, level - Yq @ (vi.phi_of(safe_theta(
             e.mean, self.theta, self.settings.max_mass)) - phi))
