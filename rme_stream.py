@@ -238,7 +238,7 @@ class Streaming:
         if np.linalg.norm(change) > s.monitor_threshold and not self._payload_like(   # not gone, but no payload (a
                 change, s.min_explained, (Y, J), r["before"][0]):                   #   push holds the resting arm):
             if self._k <= r["deadline"] + 2 * s.refine_within * s.rate and not self._gone(   # again in 10 samples,
-                    level, Y, self._q[(self._k - 1) % keep]):          # until the time a moving arm is given; or
+                    level, (Y, J), self._q[(self._k - 1) % keep]):          # until the time a moving arm is given; or
                 self._refine = dict(r, recheck=self._k + 10)           # the reference held a push, now gone, and
             return                                                     # so is the load: the monitor's
         Q, TAU, _ = self._buffer()
@@ -268,15 +268,17 @@ class Streaming:
             self._pending = [self._k, w, level, None]
         return then
 
-    def _gone(self, level, Y, q) -> bool:
-        """Whether the compensated payload is no longer there: the residual `level` (n,) at pose q (Y: its payload
-        regressor) is more than monitor_far from zero and from the level explained there, while tau_ext itself
-        (level + the compensation) is nearer zero and within monitor_far, as a sensor's bias is (a load removed while
-        a push hid the change, after a reference taken during a push)."""
+    def _gone(self, level, YJ, q) -> bool:
+        """Whether the compensated payload is no longer there: the residual `level` (n,) at pose q (YJ: its payload
+        regressor and Jacobian) is more than monitor_far from zero and from the level explained there, while tau_ext
+        itself (level + the compensation) is nearer zero and within monitor_far, as a sensor's bias is, and is not
+        an upward force at the flange (a hand holding the arm up) (a load removed while a push hid the change)."""
         s, known = self.settings, self._lv.explained.at(q)
-        far, bare = np.linalg.norm(level), np.linalg.norm(level + Y @ self._phi)
-        return bool(self.theta[0] > 0 and far > s.monitor_far and bare < min(s.monitor_far, far) and (
-            known is None or np.linalg.norm(level - known) > s.monitor_far))
+        bare = level + YJ[0] @ self._phi
+        far, near = np.linalg.norm(level), np.linalg.norm(bare)
+        return bool(self.theta[0] > 0 and far > s.monitor_far and near < min(s.monitor_far, far) and (
+            known is None or np.linalg.norm(level - known) > s.monitor_far) and not self._payload_like(
+            -bare, s.min_explained, YJ, 0.0))
 
     def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
         r, s = held["resume"], self.settings
@@ -303,10 +305,10 @@ class Streaming:
             return                                                     # still changing: not a level yet
         q = self._q[(self._k - span + np.arange(span)) % len(self._q)].mean(axis=0)
         first_gate = s.first_explained if self.theta[0] <= 0 else s.min_explained   # strict only if nothing compensated
-        if not moving and self._gone(level, Y, q):   # against no payload at all: a clear payload, else none left
+        if not moving and self._gone(level, (Y, J), q):   # against no payload at all: a clear payload, else none left
             Q, TAU, _ = self._buffer()
             bare, none = TAU[-s.window:].mean(axis=0), np.zeros(4)
-            gone = self._withdraw(none, (q, bare), "at rest tau_ext is a sensor's bias, not the payload compensated")
+            gone = self._withdraw(none, None, "at rest tau_ext is a sensor's bias, not the payload compensated")
             def keep(e, Y):
                 if e.accepted:                   # a payload after all, estimated against none: it leaves the bias
                     self._pending[2] = (q, bare - Y @ vi.phi_of(e.mean))
