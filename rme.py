@@ -15,7 +15,8 @@ from detector import Detector, safe_theta
 from dynamics import Robot, as_states
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings, faulty
-from rme_stream import LevelMap, Levels, Streaming
+from rme_levels import LevelMap, Levels
+from rme_stream import Streaming
 
 __all__ = ["RME", "RMESettings", "Estimate"]
 

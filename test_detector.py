@@ -238,7 +238,7 @@ def test_an_explained_level_follows_a_slow_drift_only_as_far_as_the_threshold_fr
     """Levels.judge follows a residual level that moves less than `threshold` between checks (the sensor's bias
     drifts), but a level that has crept beyond `threshold` from the one the estimate left (a load's torque that joint
     friction lets go bit by bit) is judged against that one: a payload to estimate, or muted if it is none."""
-    from rme_stream import Levels
+    from rme_levels import Levels
     q, start, step = np.zeros(7), np.array([0.2, 0.6, -0.4, -0.4, 0.05, -0.07, 0.0]), np.array([0, 1, 0, -1, 0, 0, 0]) * 0.04
     for payload in (True, False):
         lv, asked, verdicts, tested = Levels(tolerance=0.3, threshold=0.3), [], [], []
@@ -263,7 +263,7 @@ def test_a_first_level_far_from_zero_that_is_no_payload_is_replaced_by_a_clear_p
     is taken for the bias but doubtful; a later level that is no payload against it yet a clear one against none
     (tested as such: none=True) is estimated against no payload as a new first level ("renewed", as every level
     is until one is kept again), and the doubtful level is forgotten. A first level within `far` of zero is a plausible bias: the same later level is only muted."""
-    from rme_stream import Levels
+    from rme_levels import Levels
     q, push = np.zeros(7), np.array([3.0, 12.0, -2.0, 10.0, 1.0, 4.0, 0.5])
     load = np.array([0.0, 8.0, 0.0, -6.0, 0.0, 1.0, 0.0])
     is_payload = lambda d, gate, none=False: (asked.append((np.round(d, 6).tolist(), gate, none)) or
