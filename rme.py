@@ -46,6 +46,7 @@ class RME(Streaming):
         self.changes_not_payload, self.changes_held = 0, 0   # detections no payload explains (not estimated); held
         self._held = None                              # the sample since which a change has been held (_held_back)
         self._expected = 0                             # before this sample a change is expected (expect_change)
+        self._stays = None                             # (q, level) where a small load was found left (_gone)
         self._slow_rejected = LevelMap(settings.pose_tolerance, size=1)   # the level a slow arm's check estimated in vain
         self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
@@ -224,6 +225,7 @@ class RME(Streaming):
         e.applied = self._k / self.settings.rate
         self._pending, self._still, self._calm, self._slow, self._held = None, 0, 0, 0, None   # the arm answers: wait for rest
         self._slow_rejected = LevelMap(self.settings.pose_tolerance, size=1)
+        self._stays = None
 
     def _buffer(self):
         """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""

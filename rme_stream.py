@@ -114,10 +114,11 @@ class Streaming:
         change = level + Y @ (self._phi - vi.phi_of(r["before"])) - r["bias"]
         if np.linalg.norm(change) > s.monitor_threshold and not self._payload_like(   # not gone, but no payload (a
                 change, s.min_explained, (Y, J), r["before"][0]):                   #   push holds the resting arm):
-            if self._k <= r["deadline"] + 2 * s.refine_within * s.rate and not self._gone(   # again in 10 samples,
-                    level, (Y, J), self._q[(self._k - 1) % keep]):          # until the time a moving arm is given; or
-                self._refine = dict(r, recheck=self._k + 10)           # the reference held a push, now gone, and
-            return                                                     # so is the load: the monitor's
+            if self._k <= r["deadline"] + 2 * s.refine_within * s.rate and not self._gone(
+                    level, (Y, J), self._q[(self._k - 1) % keep]):
+                self._refine = dict(r, recheck=self._k + 10)           # again in 10 samples, until the time a moving
+            return                                                     # arm is given; not if the load has gone (the
+                                                                       # reference held a push): the monitor's then
         Q, TAU, _ = self._buffer()
         self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", self._withdraw(r["before"]),
                      level=r["known"])
@@ -146,16 +147,22 @@ class Streaming:
         return then
 
     def _gone(self, level, YJ, q) -> bool:
-        """Whether the compensated payload is no longer there: the residual `level` (n,) at pose q (YJ: its payload
-        regressor and Jacobian) is more than monitor_far from zero and from the level explained there, while tau_ext
-        itself (level + the compensation) is nearer zero and within monitor_far, as a sensor's bias is, and is not
-        an upward force at the flange (a hand holding the arm up) (a load removed while a push hid the change)."""
-        s, known = self.settings, self._lv.explained.at(q)
+        """Whether the compensated payload is no longer there (a load removed while a push hid the change): the
+        residual `level` (n,) at pose q (YJ: its payload regressor and Jacobian) is more than monitor_far from zero
+        and from the level explained there, while tau_ext itself (level + the compensation) is nearer zero and within
+        monitor_far, as a sensor's bias is. Not if tau_ext is an upward force at the flange (a hand holding the arm
+        up), nor if its least-squares payload has 0.1 kg or more, nor at the level where an estimate against no
+        payload explained more than half (a small load left: the monitor's usual check estimates it against the level
+        known)."""
+        s, known, stays = self.settings, self._lv.explained.at(q), self._stays
+        if stays is not None and np.abs(q - stays[0]).max() <= s.pose_tolerance and \
+                np.linalg.norm(level - stays[1]) <= s.monitor_threshold:
+            return False                         # found a small load left here: the monitor's usual check
         bare = level + YJ[0] @ self._phi
         far, near = np.linalg.norm(level), np.linalg.norm(bare)
         return bool(self.theta[0] > 0 and far > s.monitor_far and near < min(s.monitor_far, far) and (
             known is None or np.linalg.norm(level - known) > s.monitor_far) and not self._payload_like(
-            -bare, s.min_explained, YJ, 0.0))
+            -bare, s.min_explained, YJ, 0.0) and np.linalg.lstsq(YJ[0], bare, rcond=None)[0][0] < 0.1)
 
     def _resumed(self, held):                      # the estimate at rest a held change superseded, due from now
         r, s = held["resume"], self.settings
@@ -165,8 +172,10 @@ class Streaming:
         """The monitor (see update): the residual's level over the last monitor_window samples, if steady, against
         the level explained before at this pose. The very first level is estimated against no payload at all (RME
         assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
-        taken as explained, unless it is monitor_far from the nearest level known (rme_levels.Levels.judge). Y, J: the
-        payload regressor and Jacobian of the current sample (update's), where a payload is tested.
+        taken as explained, unless it is monitor_far from the nearest level known (rme_levels.Levels.judge). If the
+        compensated payload has gone (_gone), the level is estimated against no payload: applied if a clear payload
+        (first_explained), else the compensation is withdrawn. Y, J: the payload regressor and Jacobian of the
+        current sample (update's), where a payload is tested.
         moving: the arm is slower than monitor_slow[0] but not calm (returning after a push, say): the level over the
         last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] (monitor_far
         while an estimate at rest is due: friction during the creep after a compensation is its to judge) from the
@@ -189,7 +198,10 @@ class Streaming:
             def keep(e, Y):
                 if e.accepted:                   # a payload after all, estimated against none: it leaves the bias
                     self._pending[2] = (q, bare - Y @ vi.phi_of(e.mean))
-                gone(e, Y)
+                elif e.explained >= 0.5:         # more than a bias explains: a small load left, for the usual check
+                    self._stays = (q, level)     #   against the level known (a bias explains about half)
+                else:
+                    gone(e, Y)
             self._change(Q[-s.window:], TAU[-s.window:], np.zeros(len(level)), none, "monitor", keep,
                          lambda e, Tw, Y: e.explained >= s.first_explained)
             self._calm = 0
