@@ -131,10 +131,10 @@ class Streaming:
         gap = np.linalg.norm(level - r["bias"] - self.robot.payload_regressor(q) @ phi)
         return bool(gap > max(self.settings.monitor_far, 0.25 * np.linalg.norm(d)))
 
-    def _withdraw(self, before, level=None, why=None):
+    def _withdraw(self, before, why=None):
         """then(e, Y) for an estimate at rest: if e finds the change beyond what the arm carries (a press far out, read
         as a plausible load at the detection), the compensation goes back to `before`, the estimate before the change
-        (an Estimate of kind "withdrawn" in history). With `why`: whenever e is refused; level: see _apply."""
+        (an Estimate of kind "withdrawn" in history). With `why` (its reason): whenever e is refused."""
         def then(e, Y):
             if e.accepted or (why is None and self._plausible(e.mean)) or np.array_equal(self.theta, before):
                 return
@@ -143,7 +143,7 @@ class Streaming:
             w.t, w.kind, w.accepted = e.t, "withdrawn", True
             w.reason = why or f"at rest the change is no payload ({e.reason}): back to the estimate before it"
             self.history.append(w)
-            self._pending = [self._k, w, level, None]
+            self._pending = [self._k, w, None, None]
         return then
 
     def _gone(self, level, YJ, q) -> bool:
@@ -174,8 +174,9 @@ class Streaming:
         assumes it starts unloaded) with the stricter gate first_explained; at a pose never seen, the level is
         taken as explained, unless it is monitor_far from the nearest level known (rme_levels.Levels.judge). If the
         compensated payload has gone (_gone), the level is estimated against no payload: applied if a clear payload
-        (first_explained), else the compensation is withdrawn. Y, J: the payload regressor and Jacobian of the
-        current sample (update's), where a payload is tested.
+        (first_explained), the compensation withdrawn if it explains under half (a bias), else the level is left to
+        the usual check. Y, J: the payload regressor and Jacobian of the current sample (update's), where a payload
+        is tested.
         moving: the arm is slower than monitor_slow[0] but not calm (returning after a push, say): the level over the
         last `window` samples, estimated only if it is a payload-like change of more than monitor_slow[1] (monitor_far
         while an estimate at rest is due: friction during the creep after a compensation is its to judge) from the
@@ -194,7 +195,7 @@ class Streaming:
         if not moving and self._gone(level, (Y, J), q):   # against no payload at all: a clear payload, else none left
             Q, TAU, _ = self._buffer()
             bare, none = TAU[-s.window:].mean(axis=0), np.zeros(4)
-            gone = self._withdraw(none, None, "at rest tau_ext is a sensor's bias, not the payload compensated")
+            gone = self._withdraw(none, "at rest tau_ext is a sensor's bias, not the payload compensated")
             def keep(e, Y):
                 if e.accepted:                   # a payload after all, estimated against none: it leaves the bias
                     self._pending[2] = (q, bare - Y @ vi.phi_of(e.mean))
