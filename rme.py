@@ -46,8 +46,8 @@ class RME(Streaming):
         self.changes_not_payload, self.changes_held = 0, 0   # detections no payload explains (not estimated); held
         self._held = None                              # the sample since which a change has been held (_held_back)
         self._expected = 0                             # before this sample a change is expected (expect_change)
-        self._stays = None                             # (q, level) where a small load was found left (_gone)
         self._slow_rejected = LevelMap(settings.pose_tolerance, size=1)   # the level a slow arm's check estimated in vain
+        self._stays = LevelMap(settings.pose_tolerance, size=1)   # the level where a small load was found left (_gone)
         self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
         self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
@@ -216,16 +216,17 @@ class RME(Streaming):
         if level is not None:
             self._lv.explained.put(*level)
         theta = safe_theta(e.mean, self.theta, self.settings.max_mass)
-        d = Y @ (vi.phi_of(theta) - self._phi)                         # the change of tau_mm at this pose
+        phi = vi.phi_of(theta)
+        d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         lift = before is not None and before[0] > theta[0] >= 0.1      # part of the load gone, part still there
         self._undo = (vi.phi_of(before), self._k + int(self.settings.hold_axial * self.settings.rate)) if lift else None
-        self.theta, self._phi = theta, vi.phi_of(theta)
+        self.theta, self._phi = theta, phi
         self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
         self._r -= d                                                   # the arm is near this pose over the buffer
         e.applied = self._k / self.settings.rate
         self._pending, self._still, self._calm, self._slow, self._held = None, 0, 0, 0, None   # the arm answers: wait for rest
         self._slow_rejected = LevelMap(self.settings.pose_tolerance, size=1)
-        self._stays = None
+        self._stays = LevelMap(self.settings.pose_tolerance, size=1)
 
     def _buffer(self):
         """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""

@@ -154,13 +154,14 @@ class Streaming:
         up), nor if its least-squares payload has 0.1 kg or more, nor at the level where an estimate against no
         payload explained more than half (a small load left: the monitor's usual check estimates it against the level
         known)."""
-        s, known, stays = self.settings, self._lv.explained.at(q), self._stays
-        if stays is not None and np.abs(q - stays[0]).max() <= s.pose_tolerance and \
-                np.linalg.norm(level - stays[1]) <= s.monitor_threshold:
+        s, far = self.settings, np.linalg.norm(level)
+        if self.theta[0] <= 0 or far <= s.monitor_far:                 # the common case: the level is explained
+            return False
+        stays = self._stays.at(q)
+        if stays is not None and np.linalg.norm(level - stays) <= s.monitor_threshold:
             return False                         # found a small load left here: the monitor's usual check
-        bare = level + YJ[0] @ self._phi
-        far, near = np.linalg.norm(level), np.linalg.norm(bare)
-        return bool(self.theta[0] > 0 and far > s.monitor_far and near < min(s.monitor_far, far) and (
+        bare, known = level + YJ[0] @ self._phi, self._lv.explained.at(q)
+        return bool(np.linalg.norm(bare) < min(s.monitor_far, far) and (
             known is None or np.linalg.norm(level - known) > s.monitor_far) and not self._payload_like(
             -bare, s.min_explained, YJ, 0.0) and np.linalg.lstsq(YJ[0], bare, rcond=None)[0][0] < 0.1)
 
@@ -200,7 +201,7 @@ class Streaming:
                 if e.accepted:                   # a payload after all, estimated against none: it leaves the bias
                     self._pending[2] = (q, bare - Y @ vi.phi_of(e.mean))
                 elif e.explained >= 0.5:         # more than a bias explains: a small load left, for the usual check
-                    self._stays = (q, level)     #   against the level known (a bias explains about half)
+                    self._stays.put(q, level)    #   against the level known (a bias explains about half)
                 else:
                     gone(e, Y)
             self._change(Q[-s.window:], TAU[-s.window:], np.zeros(len(level)), none, "monitor", keep,
