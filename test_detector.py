@@ -20,7 +20,8 @@ def brute_force_status(history, s: DetectorSettings):
     tau_ref, F_ref = mean(tau, s.reference_window), mean(F, s.reference_window)
     sq = np.sum((tau - tau_ref) ** 2, axis=1)
     rapid = abs(mean(sq, s.end_window) - mean(sq, s.reference_window))
-    allowance = s.stabilisation_relative * np.linalg.norm(mean(tau, s.end_window) - tau_ref)
+    size = np.linalg.norm(mean(tau, s.end_window) - tau_ref)
+    allowance = s.stabilisation_relative * size + s.stabilisation_quadratic * size**2
     drift = [np.linalg.norm(mean(tau, w) - mean(tau, s.end_window)) - allowance for w in s.check_windows]
     return rapid, np.array(drift), mean(F, s.force_window) - F_ref
 
@@ -64,6 +65,22 @@ def test_vertical_step_fires_once_and_again_for_its_removal():
     fired = detections(Detector(), tau, F)
     assert len(fired) == 2
     assert 1000 < fired[0] < 1500 and 2000 < fired[1] < 2500
+
+
+def test_a_change_soon_after_a_detection_fires_within_300_ms():
+    """The next change 0.1 s after a detection: the detector is quiet only until its window starts where the first
+    change was found settled, then fires for the second once it has settled (each change once)."""
+    rng = np.random.default_rng(3)
+    load = np.array([0.0, 2.0, 0.0, -1.5, 0.0, -0.4, 0.0])
+    tau, F = step_signal(rng, 1000, 2.5, load, np.array([0.0, 0.0, -5.0]))
+    first = detections(Detector(), tau, F)
+    assert len(first) == 1
+    second = first[0] + 100
+    tau[second:] += load                                             # another as heavy
+    F[second:] += np.array([0.0, 0.0, -5.0])
+    fired = detections(Detector(), tau, F)
+    assert len(fired) == 2 and fired[0] == first[0]
+    assert 0 < fired[1] - second < 300, fired
 
 
 def test_lateral_step_does_not_fire():
@@ -162,6 +179,7 @@ def test_pseudo_force_recovers_applied_force():
     (dict(check_windows=((0, 10),)), "check_windows[0]"), (dict(check_windows=()), "check_windows"),
     (dict(activation_threshold=0.0), "activation_threshold"), (dict(side_force_limit=np.nan), "side_force_limit"),
     (dict(algorithm="paper"), "algorithm"), (dict(refractory=-1), "refractory"), (dict(lam=-1.0), "lam"),
+    (dict(stabilisation_quadratic=-1e-3), "stabilisation_quadratic"),
 ])
 def test_invalid_settings_raise_value_error(kwargs, name):
     with pytest.raises(ValueError, match="^" + re.escape(name) + ":"):
