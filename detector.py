@@ -27,8 +27,8 @@ class DetectorSettings:
                                                         #   drift stays above 0.2 Nm for seconds after 2.5 kg)
     stabilisation_quadratic: float = 0.0016             # 1/Nm, ours ("referred"): plus this times the size squared
                                                         #   (a heavier load sags the arm further: 2.5-3 kg far out,
-                                                        #   a 20-30 Nm change, creeps for 0.4 s; 1.6 % more of a
-                                                        #   25 Nm change, 0.1 % more of 1 Nm)
+                                                        #   a 20-30 Nm change, creeps for 0.4 s; 4 % more of a
+                                                        #   25 Nm change, 0.16 % more of 1 Nm)
     check_windows: tuple = ((431, 450), (391, 410), (351, 370))   # ours: Alg. 1's "stabilization checks"
                                                         #   (ALGORITHM_1_CHECKS) over the last 150 ms, not 230
                                                         #   (App. A: tuned to the task): loads compensated sooner
@@ -41,8 +41,8 @@ class DetectorSettings:
     settled_window: tuple = (11, 30)                    # ours ("referred"): must agree with reference_window
     refractory: int = 350                               # ours: samples after a detection before the next one:
                                                         #   then the window starts at the detection's earliest
-                                                        #   check, where the change had settled (every sample held
-                                                        #   lies after it), not a whole window later
+                                                        #   check (every sample held lies after the change), not
+                                                        #   a whole window later (see Detector)
     lam: float = 0.01                                   # pseudo-wrench damping, authors' public code (paper_notes)
 
     def __post_init__(self):
@@ -100,9 +100,11 @@ class Detector:
     samples 1 and 500, and the settled-before test, stop it firing on the first samples of a new change or on a
     window that starts mid-change; the vector stabilisation test does not grow with the load, as
     |mean s - mean s'| ~ 2 ||tau_mm|| noise does (Alg. 1 delayed a 1.2 kg detection past 500 ms in simulation).
-    After firing it stays quiet for `refractory` samples (one change fires once; the buffer then holds only samples
-    from the detection's earliest check on, which it found settled after the change) and then fires again for the
-    next change, a removal included. `active`: whether the
+    After firing it stays quiet for `refractory` samples (the buffer then holds only samples from the detection's
+    earliest check on, after the change) and then fires again for the next change, a removal included. While the
+    window still reaches back to that detection, rapid is also measured against the level it settled at (the mean of
+    its end window, re-expressed by shift): the rest of a change that still crept within the allowance at its
+    detection does not fire again. `active`: whether the
     last evaluation found rapid > activation_threshold (a change in the window that may yet settle and fire).
     Work per update: O(n) whatever the window length (prefix sums over a ring of window + 1 entries).
     """
@@ -124,7 +126,8 @@ class Detector:
         self.count, self._quiet, self.active = 0, 0, False
         self.reference_torque = np.zeros(n)   # (n,) tau_ref at the last detection (the torque before the change)
         self._status, self._evaluated = None, 0  # the last evaluation (see status) and its sample count
-        self._frozen = None                      # (raw, prefix) as they were at that evaluation, if shifted since
+        self._frozen = None                      # (raw, prefix, settled) as at that evaluation, if shifted since
+        self._settled = None                     # (sample count, mean torque of the end window) at the last detection
 
     def reset(self):
         """Forget the history (the next detection needs a full window again)."""
@@ -137,7 +140,7 @@ class Detector:
         c_j |d|^2, the others by -c_j d), so no sum is rebuilt: O(window) in a few vector operations."""
         N, n, k = self.settings.window, self.n, self.count
         if self._status is None and self._evaluated and self._frozen is None:
-            self._frozen = (self._raw.copy(), self._prefix.copy())   # status: the last evaluation, as the samples were
+            self._frozen = (self._raw.copy(), self._prefix.copy(), self._settled)   # for status
         d = np.concatenate([np.asarray(d_tau, dtype=float).ravel(), np.asarray(d_force, dtype=float).ravel()])
         dd = float(d[:n] @ d[:n])
         held = (self._counts - (k - min(k, N))) % (N + 1)        # samples summed in each prefix entry since the
@@ -147,6 +150,8 @@ class Detector:
         for x, c in shifted:
             x[:, 0] += c * dd - 2.0 * (x[:, 1:1 + n] @ d[:n])
             x[:, 1:] -= np.multiply.outer(c, d)
+        if self._settled is not None:
+            self._settled = (self._settled[0], self._settled[1] - d[:n])
 
     def update(self, tau_ext, force=None, J=None) -> bool:
         """Add one sample: tau_ext (n,) [Nm, paper sign] and either the world-frame pseudo-force (3,) [N] or the
@@ -203,11 +208,12 @@ class Detector:
         """dict of the last evaluation: rapid, settled, stabilisation, force_change, fired (None before the first);
         computed on demand (the 1 kHz path stops at the activation test when nothing changed)."""
         if self._status is None and self._evaluated:
-            now, (self._raw, self._prefix) = (self._raw, self._prefix), self._frozen or (self._raw, self._prefix)
+            now = (self._raw, self._prefix, self._settled)                  # as the samples were then
+            self._raw, self._prefix, self._settled = self._frozen or now
             try:
                 self._status = self._evaluate(self._evaluated, full=True)
             finally:
-                self._raw, self._prefix = now
+                self._raw, self._prefix, self._settled = now
         return self._status
 
     def _evaluate(self, k, full=False):
@@ -226,6 +232,9 @@ class Detector:
             # mean over a window of ||tau - tau_ref||^2 = mean ||tau||^2 - 2 tau_ref . mean tau + ||tau_ref||^2
             s_end, s_ref = (w[0] - 2.0 * w[T] @ tau_ref + tau_ref @ tau_ref for w in (end, ref))
             rapid = abs(s_end - s_ref)
+            if self._settled is not None and k - self._settled[0] < N:   # the window reaches back to the last
+                gap = end[T] - self._settled[1]                           #   detection: a new change also moves
+                rapid = min(rapid, float(gap @ gap))                      #   the level that detection settled at
         if not full:
             self.active = bool(rapid > s.activation_threshold)   # a change in the window (it may yet settle)
         if not full and rapid <= s.activation_threshold:
@@ -255,6 +264,7 @@ class Detector:
         self._status = status
         if fired:
             self.reference_torque = tau_ref.copy()
+            self._settled = (k, end[T].copy())
         return fired
 
 
