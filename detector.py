@@ -104,8 +104,8 @@ class Detector:
     earliest check on, after the change) and then fires again for the next change, a removal included. While the
     window still reaches back to that detection, rapid is also measured against the level it settled at (the mean of
     its end window, re-expressed by shift): the rest of a change that still crept within the allowance at its
-    detection does not fire again. `active`: whether the
-    last evaluation found rapid > activation_threshold (a change in the window that may yet settle and fire).
+    detection does not fire again. `active`: whether the last evaluation found rapid > activation_threshold (a change
+    in the window that may yet settle and fire).
     Work per update: O(n) whatever the window length (prefix sums over a ring of window + 1 entries).
     """
 
