@@ -88,7 +88,8 @@ class Detector:
     |F_z| > |F_x|, |F_z| > |F_y| and |F_x|, |F_y| < side_force_limit (magnitudes, as the paper intends).
     "referred" (default) keeps the structure but measures every signal against the torque and force BEFORE the
     change, tau_ref and F_ref = their means over reference_window (samples 1-10):
-      rapid = |mean_end ||tau - tau_ref||^2 - mean_ref ||tau - tau_ref||^2| > activation_threshold [Nm^2];
+      rapid = |mean_end ||tau - tau_ref||^2 - mean_ref ||tau - tau_ref||^2| > activation_threshold [Nm^2] (within a
+        window of the last detection, at most ||mean_end(tau) - the end window's mean at that detection||^2);
       settled before: ||mean_settled(tau) - tau_ref|| < stabilisation_threshold [Nm] (samples 11-30);
       stable after: ||mean_check(tau) - mean_end(tau)|| < stabilisation_threshold + (stabilisation_relative +
         stabilisation_quadratic x D) x D [Nm] for every check window, D = ||mean_end(tau) - tau_ref||;
@@ -104,8 +105,9 @@ class Detector:
     earliest check on, after the change) and then fires again for the next change, a removal included. While the
     window still reaches back to that detection, rapid is also measured against the level it settled at (the mean of
     its end window, re-expressed by shift): the rest of a change that still crept within the allowance at its
-    detection does not fire again. `active`: whether the last evaluation found rapid > activation_threshold (a change
-    in the window that may yet settle and fire).
+    detection does not fire again. The cost: a small second change inside that detection's end window (within about
+    0.1 s of a heavy first one) is left to the consistency monitor at rest. `active`: whether the last evaluation
+    found rapid > activation_threshold (a change in the window that may yet settle and fire).
     Work per update: O(n) whatever the window length (prefix sums over a ring of window + 1 entries).
     """
 
@@ -127,7 +129,7 @@ class Detector:
         self.reference_torque = np.zeros(n)   # (n,) tau_ref at the last detection (the torque before the change)
         self._status, self._evaluated = None, 0  # the last evaluation (see status) and its sample count
         self._frozen = None                      # (raw, prefix, settled) as at that evaluation, if shifted since
-        self._settled = None                     # (sample count, mean torque of the end window) at the last detection
+        self._detected_level = None              # (sample count, mean torque of the end window) at the last detection
 
     def reset(self):
         """Forget the history (the next detection needs a full window again)."""
@@ -140,7 +142,7 @@ class Detector:
         c_j |d|^2, the others by -c_j d), so no sum is rebuilt: O(window) in a few vector operations."""
         N, n, k = self.settings.window, self.n, self.count
         if self._status is None and self._evaluated and self._frozen is None:
-            self._frozen = (self._raw.copy(), self._prefix.copy(), self._settled)   # for status
+            self._frozen = (self._raw.copy(), self._prefix.copy(), self._detected_level)     # for status
         d = np.concatenate([np.asarray(d_tau, dtype=float).ravel(), np.asarray(d_force, dtype=float).ravel()])
         dd = float(d[:n] @ d[:n])
         held = (self._counts - (k - min(k, N))) % (N + 1)        # samples summed in each prefix entry since the
@@ -150,8 +152,8 @@ class Detector:
         for x, c in shifted:
             x[:, 0] += c * dd - 2.0 * (x[:, 1:1 + n] @ d[:n])
             x[:, 1:] -= np.multiply.outer(c, d)
-        if self._settled is not None:
-            self._settled = (self._settled[0], self._settled[1] - d[:n])
+        if self._detected_level is not None:
+            self._detected_level = (self._detected_level[0], self._detected_level[1] - d[:n])
 
     def update(self, tau_ext, force=None, J=None) -> bool:
         """Add one sample: tau_ext (n,) [Nm, paper sign] and either the world-frame pseudo-force (3,) [N] or the
@@ -208,12 +210,12 @@ class Detector:
         """dict of the last evaluation: rapid, settled, stabilisation, force_change, fired (None before the first);
         computed on demand (the 1 kHz path stops at the activation test when nothing changed)."""
         if self._status is None and self._evaluated:
-            now = (self._raw, self._prefix, self._settled)                  # as the samples were then
-            self._raw, self._prefix, self._settled = self._frozen or now
+            now = (self._raw, self._prefix, self._detected_level)            # as the samples were then
+            self._raw, self._prefix, self._detected_level = self._frozen or now
             try:
                 self._status = self._evaluate(self._evaluated, full=True)
             finally:
-                self._raw, self._prefix, self._settled = now
+                self._raw, self._prefix, self._detected_level = now
         return self._status
 
     def _evaluate(self, k, full=False):
@@ -232,9 +234,10 @@ class Detector:
             # mean over a window of ||tau - tau_ref||^2 = mean ||tau||^2 - 2 tau_ref . mean tau + ||tau_ref||^2
             s_end, s_ref = (w[0] - 2.0 * w[T] @ tau_ref + tau_ref @ tau_ref for w in (end, ref))
             rapid = abs(s_end - s_ref)
-            if self._settled is not None and k - self._settled[0] < N:   # the window reaches back to the last
-                gap = end[T] - self._settled[1]                           #   detection: a new change also moves
-                rapid = min(rapid, float(gap @ gap))                      #   the level that detection settled at
+            last = self._detected_level
+            if last is not None and k - last[0] < N:       # the window reaches back to the last detection: a new
+                gap = end[T] - last[1]                      #   change also moves the level that detection settled at
+                rapid = min(rapid, float(gap @ gap))
         if not full:
             self.active = bool(rapid > s.activation_threshold)   # a change in the window (it may yet settle)
         if not full and rapid <= s.activation_threshold:
@@ -264,7 +267,7 @@ class Detector:
         self._status = status
         if fired:
             self.reference_torque = tau_ref.copy()
-            self._settled = (k, end[T].copy())
+            self._detected_level = (k, end[T].copy())
         return fired
 
 
