@@ -13,22 +13,30 @@ from scipy.linalg import lapack
 import vi
 from detector import Detector, safe_theta
 from dynamics import Robot, as_states
+from error_model import ErrorModel, as_error_model
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings, faulty
 from rme_levels import LevelMap, Levels
 from rme_stream import Streaming
 
-__all__ = ["RME", "RMESettings", "Estimate"]
+__all__ = ["RME", "RMESettings", "Estimate", "ErrorModel"]
 
 
 class RME(Streaming):
     """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
     use, returning the compensation torque (7,) to add to the controller's torque. executor (ours): runs each streamed
-    estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update."""
+    estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update.
+    calibration: the robot's error model (error_model.ErrorModel, or the JSON of `python rme.py calibrate LOG --save`;
+    None: an uncalibrated Panda), which says how far tau_ext may stray from the payload's torque in a window taken
+    as it is (absolute) and in one referred to the level before a change."""
 
     def __init__(self, robot: Robot | None = None, weights: str | None = WEIGHTS, settings: RMESettings = RMESettings(),
-                 rng: np.random.Generator | None = None, correction=None, executor=None):
+                 rng: np.random.Generator | None = None, correction=None, executor=None, calibration=None):
         self.robot = Robot.panda() if robot is None else robot
+        self.error_model = as_error_model(calibration, self.robot.n)
+        if len(self.error_model.absolute) != self.robot.n:
+            raise ValueError(f"calibration: expected an error model of {self.robot.n} joints, found "
+                             f"{len(self.error_model.absolute)} ({self.error_model.source})")
         self.settings, self.correction, self.executor = settings, correction, executor
         self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
                                                        #   a request; (generator, sample): a detection's steps
@@ -80,21 +88,29 @@ class RME(Streaming):
                                                                                         #   call keeps a longer one)
 
     # --- one window ----------------------------------------------------------------------------
-    def estimate(self, q, tau_ext, baseline=None, dq=None) -> Estimate:
+    def estimate(self, q, tau_ext, baseline=None, dq=None, referred: bool | None = None) -> Estimate:
         """Posterior of theta from a window q, tau_ext (T, n) (paper sign), T about 200 at 1 kHz; or from lists of
         windows [q_a, q_b], [tau_a, tau_b] of one payload (each (T_i, n); baseline and dq lists too, or None): one
         posterior, their evidence combined (vi.combine), the prior mean the network's mean over them.
-        baseline (n,): the tau_ext seen before the change, subtracted first (default: none).
-        dq (T, n): joint velocities, needed only by a velocity-dependent correction (e.g. fitted friction)."""
+        baseline (n,): the tau_ext seen before the change at the same pose, subtracted first. Pass it when you have
+        it: the robot model's own error at the pose cancels (ErrorModel.referred, a few mNm); without it the window
+        is absolute and carries that error (ErrorModel.absolute, tenths of a Nm; its calibrated offset subtracted).
+        dq (T, n): joint velocities, needed only by a velocity-dependent correction (e.g. fitted friction).
+        referred: None: the window is referred exactly when a baseline is given; True: tau_ext is already less the
+        level before the change (you subtracted it); False: absolute even with a baseline."""
+        if referred is not None and not isinstance(referred, (bool, np.bool_)):
+            raise ValueError(f"referred: expected True, False or None, found {referred!r}")
+        ref = lambda b: bool(b is not None if referred is None else referred)
         if not isinstance(q, (list, tuple)):
-            return self._estimate(*self._window(q, tau_ext, baseline, dq))[0]
+            return self._estimate(*self._window(q, tau_ext, baseline, dq, ref(baseline)), referred=ref(baseline))[0]
         each = lambda v: [None] * len(q) if v is None else list(v) if isinstance(v, (list, tuple)) else []
         if not (q and len(each(tau_ext)) == len(q) == len(each(baseline)) == len(each(dq))):
             raise ValueError(f"q, tau_ext, baseline, dq: expected lists of {len(q)} windows (or None), found other")
-        windows = [self._window(*w) for w in zip(q, each(tau_ext), each(baseline), each(dq))]
-        return self._estimate([w[0] for w in windows], [w[1] for w in windows])[0]
+        windows = [self._window(*w, ref(w[2])) for w in zip(q, each(tau_ext), each(baseline), each(dq))]
+        return self._estimate([w[0] for w in windows], [w[1] for w in windows],
+                              referred=[ref(b) for b in each(baseline)])[0]
 
-    def _window(self, q, tau_ext, baseline, dq):
+    def _window(self, q, tau_ext, baseline, dq, referred):
         """A checked (q, tau) (T, n) window, less the baseline and the correction."""
         n, q_in, tau_in = self.robot.n, q, tau_ext
         q, qb = as_states("q", q, n)
@@ -106,6 +122,8 @@ class RME(Streaming):
             raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
         if baseline is not None:
             tau = tau - as_states("baseline", baseline, n, allow_window=False)[0]
+        if not referred:
+            tau = tau - np.asarray(self.error_model.offset)          # the calibrated mean model error (absolute)
         if self.correction is not None:
             dq = np.zeros_like(q) if dq is None else as_states("dq", dq, n)[0]
             if dq.shape != q.shape:
@@ -113,9 +131,10 @@ class RME(Streaming):
             tau = tau - self.correction.correction(q, dq)
         return q, tau
 
-    def _estimate(self, q, tau):
-        """Network prior and VI on checked, referred, corrected windows (or lists): (Estimate, S) with S (n + 5, 4)
-        what judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows)."""
+    def _estimate(self, q, tau, referred=True):
+        """Network prior and VI on checked, corrected windows (or lists): (Estimate, S) with S (n + 5, 4) what
+        judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows).
+        referred: the window is less the level before the change (else absolute; a list with lists of windows)."""
         start, many, Ys, priors = time.perf_counter(), isinstance(q, list), [], []
         for qi, ti in zip(q if many else [q], tau if many else [tau]):
             _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
@@ -124,10 +143,18 @@ class RME(Streaming):
         prior = np.mean(priors, axis=0)
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
         speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
-        post = vi.fit(Ys if many else Ys[0], tau, prior, self.settings.vi, self.rng, speed=speed,
-                      sigma_prior=None if self.net is None else self.net.prior_std(prior, self.settings.vi.sigma_prior, R[-1]))
-        return Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
-                        time.perf_counter() - start, post.iterations, post.converged), np.vstack([
+        em = self.error_model
+        referred = ([referred] * len(q) if isinstance(referred, bool) else referred) if many else referred
+        bias = [em.referred if r else em.absolute for r in referred] if many else \
+            (em.referred if referred else em.absolute)
+        s = self.settings
+        post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias,
+                      sigma_prior=None if self.net is None else self.net.prior_std(prior, s.vi.sigma_prior, R[-1]),
+                      alternative=(np.array([s.max_mass / 2, 0, 0, 0]), np.array([s.max_mass / 2] + [s.max_com / 2] * 3)))
+        e = Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
+                     time.perf_counter() - start, post.iterations, post.converged)
+        e.prior_source = post.prior
+        return e, np.vstack([
             Ys[-1].mean(axis=0), np.einsum("tij,tik->jk", Ys[-1], Ys[-1]), (tau[-1] if many else tau).ravel() @
             Ys[-1].reshape(-1, 4)])
 
@@ -277,6 +304,10 @@ class RME(Streaming):
 
 if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module
     from diagnosis.diagnose import main
-    sys.exit(main(sys.argv[2:], prog="rme.py diagnose") if sys.argv[1:2] == ["diagnose"] else print(
-        "usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n(the estimator itself is a "
-        "library: from rme import RME; demos: python sim.py --help)") or 2)
+    from diagnosis.calibrate import main as calibrate
+    commands = {"diagnose": main, "calibrate": calibrate}
+    sys.exit(commands[sys.argv[1]](sys.argv[2:], prog=f"rme.py {sys.argv[1]}") if sys.argv[1:2] and sys.argv[1] in
+             commands else print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
+                                 "       python rme.py calibrate LOG [LOG ...] [--load none|fit] [--save FILE] [--json]\n"
+                                 "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)",
+                                 file=sys.stderr) or 2)

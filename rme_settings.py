@@ -133,3 +133,5 @@ class Estimate:
                                      #   (the compensation no longer explained tau_ext at rest) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied (update only)
+    prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1), or "broad" (every plausible
+                                     #   payload) where the window's evidence says the network's prior conflicts

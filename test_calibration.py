@@ -20,7 +20,7 @@ def calibration():
     m, rx, ry (the parameters every window observes)."""
     windows = calibration_windows(24, np.random.default_rng(1))
     est = RME(rng=np.random.default_rng(0))
-    E = [est.estimate(w["q"], w["tau"]) for w in windows]
+    E = [est.estimate(w["q"], w["tau"], referred=True) for w in windows]
     return (np.array([e.mean - w["theta"] for e, w in zip(E, windows)])[:, :3], np.array([e.std for e in E])[:, :3])
 
 
@@ -56,7 +56,7 @@ def test_rz_is_not_observed_at_the_ready_pose_and_is_after_a_wrist_turn():
     _, tau_a, q_a = simulated_window(theta, rng, Q_READY)
     _, tau_b, q_b = simulated_window(theta, rng, Q_READY + np.array([0, 0, 0, 0, 0, 0.6, 0]))
     est = RME(ROBOT, rng=np.random.default_rng(0))
-    one, two = est.estimate(q_a, tau_a), est.estimate([q_a, q_b], [tau_a, tau_b])
+    one, two = est.estimate(q_a, tau_a, referred=True), est.estimate([q_a, q_b], [tau_a, tau_b], referred=True)
     assert one.observed.tolist() == [True, True, True, False]
     assert two.observed.tolist() == [True, True, True, True]
     assert abs(two.mean[3] - theta[3]) < 2 * two.std[3]

@@ -63,8 +63,8 @@ def test_a_rotated_second_pose_makes_the_com_along_gravity_observable():
     A second window with the wrist turned 0.6 rad observes it (noise-free torques at a still pose: with noise-free
     torques, even millimetre jitter of the pose would observe rz a little)."""
     (qa, ta), (qb, tb) = two_poses(T=200, jitter=0.0)
-    one = RME(ROBOT, rng=np.random.default_rng(0)).estimate(qa, ta)
-    two = RME(ROBOT, rng=np.random.default_rng(0)).estimate([qa, qb], [ta, tb])
+    one = RME(ROBOT, rng=np.random.default_rng(0)).estimate(qa, ta, referred=True)   # the payload's torque alone
+    two = RME(ROBOT, rng=np.random.default_rng(0)).estimate([qa, qb], [ta, tb], referred=True)
     assert one.std[3] / two.std[3] >= 5.0
     assert abs(two.mean[3] - THETA[3]) < 0.005 < abs(one.mean[3] - THETA[3])
     assert np.all(np.abs(two.mean[:3] - THETA[:3]) < np.array([0.01, 0.002, 0.002]))

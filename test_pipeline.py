@@ -26,7 +26,7 @@ def test_estimate_recovers_mass_and_horizontal_com_on_realistic_windows():
     for i in range(12):
         theta = np.array([rng.uniform(0.3, 1.5), *rng.uniform(-0.06, 0.06, 2), rng.uniform(0.0, 0.15)])
         q, tau = static_window(theta, seed=100 + i)
-        e = est.estimate(q, tau)
+        e = est.estimate(q, tau, referred=True)
         errors.append(e.mean - theta)
         inside.append(np.abs(e.mean - theta) <= 2 * e.std)
         assert e.converged and e.seconds < 0.1 and e.mean.shape == e.std.shape == (4,)
@@ -68,7 +68,7 @@ def test_unusable_weights_file_is_a_value_error_naming_the_file_and_array(tmp_pa
 def test_no_weights_runs_with_the_zero_prior_mean():
     est = RME(weights=None)
     q, tau = static_window(np.array([0.8, 0.03, 0.0, 0.1]), seed=3)
-    e = est.estimate(q, tau)
+    e = est.estimate(q, tau, referred=True)
     np.testing.assert_array_equal(e.prior, np.zeros(4))
     assert abs(e.mean[0] - 0.8) < 0.08
 
@@ -141,10 +141,10 @@ def test_fitted_friction_correction_removes_the_friction_bias_of_rme():
 def test_baseline_is_subtracted_before_estimating():
     q, tau = static_window(np.array([0.6, 0.02, -0.01, 0.1]), seed=8)
     offset = np.array([0.4, -0.3, 0.2, 0.5, -0.1, 0.05, 0.02])
-    a = RME(rng=np.random.default_rng(1)).estimate(q, tau)
+    a = RME(rng=np.random.default_rng(1)).estimate(q, tau, referred=True)
     b = RME(rng=np.random.default_rng(1)).estimate(q, tau + offset, baseline=offset)
     np.testing.assert_allclose(a.mean, b.mean, atol=1e-9)
-    c = RME(rng=np.random.default_rng(1)).estimate(q, tau + offset)
+    c = RME(rng=np.random.default_rng(1)).estimate(q, tau + offset, referred=True)
     assert np.abs(c.mean - a.mean).max() > 1e-3                # without it the offset does change the estimate
 
 

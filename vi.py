@@ -43,12 +43,15 @@ class VISettings:
     reference_samples: int = 30        # samples of the reference the window is referred to (RMESettings.reference)
     observed_ratio: float = 0.5        # ours: a parameter counts as observed if its posterior std < this x prior std
     keep_history: bool = False         # record mu, sigma and the -ELBO estimate at every iteration
+    conflict: float = 5.0              # ln Bayes factor of a broad prior over the network's beyond which the window
+                                       #   conflicts with the network (fit's alternative): "very strong" evidence,
+                                       #   2 ln B > 10 (Kass and Raftery 1995); simulated windows stay below 6.2
 
     def __post_init__(self):
         sp = np.asarray(self.sigma_prior, dtype=float)
         if sp.shape != (4,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
             raise ValueError(f"sigma_prior: expected 4 finite values > 0, found {self.sigma_prior}")
-        positive = ("lr", "clip_norm", "tol", "noise_scale", "observed_ratio")
+        positive = ("lr", "clip_norm", "tol", "noise_scale", "observed_ratio", "conflict")
         for name in positive + ("noise_floor", "offset_std", "adam_eps", "load_share", "slow_gain", "motion_gain", "motion_max"):
             if not (np.isfinite(v := getattr(self, name)) and (v > 0 if name in positive else v >= 0)):
                 raise ValueError(f"{name}: expected a finite value {'>' if name in positive else '>='} 0, found {v}")
@@ -95,6 +98,7 @@ class Posterior:
     noise_std: np.ndarray    # (n,) the likelihood's per-joint noise std
     observed: np.ndarray     # (4,) bool: marginal_std < observed_ratio x the prior's std (the data informed it)
     history: np.ndarray | None = field(default=None, repr=False)   # (iterations, 9): mu, sigma, -ELBO
+    prior: str = "network"   # the prior q started from: "network", or "broad" where the window conflicts with it
 
     marginal_std = property(lambda self: np.sqrt(np.diag(self.cov)), doc="(4,) sqrt(diag(cov))")
 
@@ -130,7 +134,7 @@ def check_window(Y, tau):
 
 
 # --- Likelihood: the window's quadratic form in phi (computed once, O(T n)) --------------------------
-def noise_from_window(Y, tau, settings=VISettings(), speed=None):
+def noise_from_window(Y, tau, settings=VISettings(), speed=None, bias_std=None):
     """Per-joint error model of the window Y (T, n, 4), tau (T, n), speed (n,) [rad/s] (joint_speed; None: at rest):
     s (n,) [Nm] the std of the error that averages down over the T samples, D (n, 3) [Nm] the std of its slow parts
     (constant, P1(t), P2(t)), marginalised by precompute.
@@ -145,8 +149,11 @@ def noise_from_window(Y, tau, settings=VISettings(), speed=None):
     the pose leaves the reference's: steady over a window of steady motion, no residual shows it); the P1 and
     P2 parts: slow_gain x the fitted coefficient's rms (with offset_std): a drift that shadows the arm's motion.
     "range": s_j = max(noise_scale 0.25 (max_t tau_tj - min_t tau_tj), noise_floor) (authors' code), D_j = (offset_std, 0, 0).
+    bias_std (n,) [Nm] (error_model.ErrorModel: absolute or referred): replaces offset_std as the constant's std
+    ("residual" only: the range rule is the authors' as it is).
     """
     T, n, _ = Y.shape
+    offset = np.full(n, settings.offset_std) if bias_std is None else np.asarray(bias_std, dtype=float)
     if settings.noise_rule == "range":
         s = settings.noise_scale * 0.25 * (tau.max(axis=0) - tau.min(axis=0))
         return np.maximum(s, settings.noise_floor), np.outer(np.full(n, settings.offset_std), [1.0, 0.0, 0.0])
@@ -164,14 +171,14 @@ def noise_from_window(Y, tau, settings=VISettings(), speed=None):
     rho = np.clip(np.sum(e[1:] * e[:-1], axis=0) / np.maximum(np.sum(e * e, axis=0), 1e-300), 0.0, 0.9)
     s = np.maximum(settings.noise_scale * np.sqrt(np.sum(e * e, axis=0) / (T - 3) * (1 + rho) / (1 - rho)),
                    settings.noise_floor)
-    d2 = (settings.offset_std**2 + (settings.load_share * tau.mean(axis=0))**2
+    d2 = (offset**2 + (settings.load_share * tau.mean(axis=0))**2
           + settings.slow_gain**2 * np.mean(slow * slow, axis=0) + s**2 / settings.reference_samples
           + np.minimum(settings.motion_gain * np.linalg.norm(0.0 if speed is None else speed), settings.motion_max)**2)
     v = np.sqrt(settings.offset_std**2 + settings.slow_gain**2 * np.mean(coef * coef, axis=0))
     return s, np.stack([np.sqrt(d2), v, v], axis=1)
 
 
-def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None):
+def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None, bias_std=None):
     """Window quadratic form from Y (T, n, 4) and tau (T, n) (speed (n,): the joints' speed, noise_from_window).
 
     Per joint j: tau_j = Y_j phi + B g_j + e_j, e_j ~ N(0, s_j^2 I) white, B (T, 3) = (1, P1(t), P2(t)) and
@@ -179,16 +186,18 @@ def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None):
     S_j = s_j^2 I + B diag(D_j^2) B^T, and by Woodbury S_j^-1 = (I - B K_j B^T) / s_j^2 with
     K_j = R (s_j^2 I + R B^T B R)^-1 R, R = diag(D_j). So, with Yb_j = B^T Y_j, taub_j = B^T tau_j:
       A = sum_j (Y_j^T Y_j - Yb_j^T K_j Yb_j) / s_j^2,  b = sum_j (Y_j^T tau_j - Yb_j^T K_j taub_j) / s_j^2.
-    s, D from noise_from_window; noise_std (n,) overrides s, with D_j = (settings.offset_std, 0, 0).
+    s, D from noise_from_window (bias_std (n,): the constant's std there); noise_std (n,) overrides s, with
+    D_j = (bias_std or settings.offset_std, 0, 0).
     """
     Y, tau = check_window(Y, tau)
     T, n, _ = Y.shape
     if speed is not None and ((speed := _array("speed", speed, f"({n},)", 1)).shape != (n,) or np.any(speed < 0)):
         raise ValueError(f"speed: expected shape ({n},) with values >= 0, found {speed}")
     if noise_std is None:
-        s, D = noise_from_window(Y, tau, settings, speed)
+        s, D = noise_from_window(Y, tau, settings, speed, bias_std)
     else:
-        s, D = _array("noise_std", noise_std, f"({n},)", 1), np.outer(np.full(n, settings.offset_std), [1.0, 0, 0])
+        s = _array("noise_std", noise_std, f"({n},)", 1)
+        D = np.outer(np.full(n, settings.offset_std) if bias_std is None else bias_std, [1.0, 0, 0])
         if s.shape != (n,) or np.any(s <= 0):
             raise ValueError(f"noise_std: expected shape ({n},) with values > 0, found {s}")
     t = np.linspace(-1.0, 1.0, T)
@@ -301,11 +310,16 @@ def map_estimate(window, mu_prior, sigma_prior, steps=20, tol=1e-3):
 
 
 # --- the solver ---------------------------------------------------------------------------------------
-def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma_prior=None, speed=None):
+def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma_prior=None, speed=None,
+        bias_std=None, alternative=None):
     """q(theta) = N(mean, diag(std^2)) for the window Y (T, n, 4) = payload_regressor(q), tau (T, n) = tau_ext
     (referred to the torque before the change; or lists of windows: combine), prior N(mu_prior, diag(sigma_prior^2)),
     sigma_prior (4,) = settings.sigma_prior unless given (e.g. widened where the network extrapolates), speed (n,)
-    the joints' speed in the window (joint_speed; a list with lists of windows; None: at rest).
+    the joints' speed in the window (joint_speed; a list with lists of windows; None: at rest), bias_std (n,) the
+    std of the window's constant error (error_model; a list with lists of windows; None: settings.offset_std).
+    alternative: (mean (4,), std (4,)) of a broad prior over every plausible payload, taken instead of the network's
+    where the window's Laplace evidence favours it by more than settings.conflict (prior_conflict); `Posterior.prior`
+    names the one used.
 
     Adam minimises the Monte Carlo -ELBO over x = (z, w): mu = mu0 + C z, log sigma = log sigma0 + w. warm_start:
     mu0 = MAP, sigma0 = the Laplace mean-field sigma (1 / sqrt(H_ii)), C = chol(H^-1), so that Adam's steps are
@@ -325,11 +339,17 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
         raise ValueError(f"Y, tau: expected a window each or equal-length lists, found {type(Y)}, {type(tau)}")
     if many and len(speed := [None] * len(Y) if speed is None else list(speed)) != len(Y):
         raise ValueError(f"speed: expected one (n,) array per window ({len(Y)}), found {len(speed)}")
-    window = combine([precompute(Yi, ti, noise_std, settings, v) for Yi, ti, v in zip(Y, tau, speed)]) if many else \
-        precompute(Y, tau, noise_std, settings, speed)
+    if many and len(bias_std := [None] * len(Y) if bias_std is None else list(bias_std)) != len(Y):
+        raise ValueError(f"bias_std: expected one (n,) array per window ({len(Y)}), found {len(bias_std)}")
+    window = combine([precompute(Yi, ti, noise_std, settings, v, d) for Yi, ti, v, d in zip(Y, tau, speed, bias_std)]) \
+        if many else precompute(Y, tau, noise_std, settings, speed, bias_std)
     sp = np.asarray(settings.sigma_prior if sigma_prior is None else sigma_prior, dtype=float)
     if sp.shape != (4,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
         raise ValueError(f"sigma_prior: expected 4 finite values > 0, found {sigma_prior}")
+    source = "network"
+    if alternative is not None and prior_conflict(window, (mu_prior, sp), alternative, settings.map_steps) > \
+            settings.conflict:
+        (mu_prior, sp), source = (np.asarray(a, dtype=float) for a in alternative), "broad"
     if settings.warm_start:
         mu0, H = map_estimate(window, mu_prior, sp, settings.map_steps)
         sigma0 = 1.0 / np.sqrt(np.diag(H))
@@ -342,7 +362,24 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
     eps = rng.standard_normal((64, 4))                               # a final, less noisy -ELBO estimate
     value = neg_elbo_grad(mean, np.log(std), window, mu_prior, sp, eps)[0]
     return Posterior(mean, std, cov, it, time.perf_counter() - t0, converged, "converged" if converged else
-                     "max_iterations", value, window.noise_std, np.sqrt(np.diag(cov)) < settings.observed_ratio * sp, history)
+                     "max_iterations", value, window.noise_std, np.sqrt(np.diag(cov)) < settings.observed_ratio * sp,
+                     history, source)
+
+
+def log_evidence(window, mu_prior, sigma_prior, steps=20):
+    """Laplace approximation of log p(D) under the prior N(mu_prior, diag(sigma_prior^2)), up to a constant the
+    same for every prior: -E(theta*) - sum log sp - 1/2 log det H at the MAP theta* (map_estimate, gauss_newton)."""
+    theta, H = map_estimate(window, mu_prior, sigma_prior, steps)
+    E = gauss_newton(theta, window, mu_prior, sigma_prior)[0]
+    return float(-E - np.sum(np.log(sigma_prior)) - 0.5 * np.linalg.slogdet(H)[1])
+
+
+def prior_conflict(window, prior, alternative, steps=20):
+    """log p(D | alternative) - log p(D | prior) (Laplace, log_evidence), both (mean (4,), std (4,)): > 0 when the
+    window is better explained with the broad alternative than with the network's narrow prior, i.e. the network's
+    prediction conflicts with the data (a payload outside its training range, a robot unlike the one it was trained
+    on). fit takes the broad prior beyond VISettings.conflict."""
+    return log_evidence(window, *alternative, steps) - log_evidence(window, *prior, steps)
 
 
 def _draws(rng, chunk, samples, antithetic):

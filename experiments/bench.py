@@ -58,7 +58,7 @@ def mse_table(est, data, length, at_rest=True):
     err, secs = [], []
     for d in data:
         q, tau = (d["q_rest"][-length:], d["tau_rest"][-length:]) if at_rest else (d["q"][:length], d["tau"][:length])
-        e = est.estimate(q, tau)
+        e = est.estimate(q, tau, referred=True)
         err.append(e.mean - d["theta"])
         secs.append(e.seconds)
     return np.mean(np.square(err), axis=0).tolist(), secs

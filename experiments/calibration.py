@@ -43,7 +43,7 @@ def coverage(estimates, thetas):
 
 def calibration_table(windows, est):
     """The estimates of est on windows, grouped: all, ready pose, random poses; and rz where observed / not."""
-    E = [est.estimate(w["q"], w["tau"]) for w in windows]
+    E = [est.estimate(w["q"], w["tau"], referred=True) for w in windows]
     th = [w["theta"] for w in windows]
     pick = lambda keep: ([e for e, k in zip(E, keep) if k], [t for t, k in zip(th, keep) if k])
     ready = [w["ready"] for w in windows]
@@ -64,7 +64,7 @@ def rest_spread(rng, windows=20, theta=(0.8, 0.03, -0.02, 0.12), length=200):
     t, est = log["t"], RME(plant.robot, rng=np.random.default_rng(0))
     ref = log["tau_ext"][(t > 0.4) & (t <= 0.5)].mean(axis=0)
     k0 = int(np.searchsorted(t, 1.5))
-    E = [est.estimate(log["q"][k:k + length], log["tau_ext"][k:k + length] - ref)
+    E = [est.estimate(log["q"][k:k + length], log["tau_ext"][k:k + length], baseline=ref)
          for k in range(k0, k0 + windows * length, length)]
     spread, sigma = np.std([e.mean for e in E], axis=0, ddof=1), np.mean([e.std for e in E], axis=0)
     return dict(spread=spread.tolist(), mean_std=sigma.tolist(), windows=windows, theta=list(theta),

@@ -37,6 +37,8 @@ DEMOS = {
                     "experiments.reliability:main", ("seed", "json", "episodes")),
     "calibration": ("coverage and sharpness of RME's 2-sigma intervals on the realistic preset, rest-window spread",
                     "experiments.calibration:main", ("seed", "json", "windows")),
+    "real-logs": ("real robot logs of one unchanged load: RME beside least squares and the range rule, per rest window",
+                  "experiments.real_logs:main", ("dir", "calibration", "json")),
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
@@ -53,6 +55,9 @@ FLAGS = {
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
     "episodes": (("--episodes",), dict(type=int, default=100, help="episodes of each kind")),
     "windows": (("--windows",), dict(type=int, default=200, help="simulated windows")),
+    "dir": (("dir",), dict(metavar="DIR", help="a folder of libfranka-style CSV or franka.py .npz logs")),
+    "calibration": (("--calibration",), dict(metavar="FILE", default=None,
+                                             help="RME's error model (python rme.py calibrate LOG --save FILE)")),
 }
 
 

@@ -345,7 +345,7 @@ class Explorer:
             rme = copy.copy(rme)
             rme.settings = dataclasses.replace(rme.settings, vi=dataclasses.replace(
                 rme.settings.vi, offset_std=self.settings.offset_std))
-        e = rme.estimate(list(qs), taus, dq=list(dqs) if rme.correction is not None else None)
+        e = rme.estimate(list(qs), taus, dq=list(dqs) if rme.correction is not None else None, referred=True)
         x.after, e.kind, e.t = e, "exploration", self.t
         if np.all(np.abs(e.mean[1:]) <= self.rme.settings.max_com) and np.isfinite(e.mean).all():
             self._theta, self._from, e.applied = e.mean.copy(), self.rme.theta.copy(), self.t

@@ -1,0 +1,178 @@
+"""The robot's error model (error_model.ErrorModel) from its own rest log: what tau_ext holds besides the payload,
+per joint, in an absolute window and in one referred to the level before. `python rme.py calibrate LOG [LOG ...]
+[--load none|fit] --save robot.json [--json]`."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from dynamics import Robot, theta_of
+from error_model import ErrorModel
+from diagnosis.logs import load_log
+
+
+@dataclass(frozen=True)
+class RestConfig:
+    length: int = 200           # samples of a window: RME's 200 ms at 1 kHz (Sec. 4)
+    speed: float = 0.01         # rad/s: every |dq| below this in every sample of the window (RMESettings.rest_speed)
+    pose: float = 0.05          # rad: windows whose mean poses are this close on every joint count as one pose
+    ridge: float = 1e-6         # relative ridge of the least-squares payload (rz is not seen at a level pose)
+
+
+def rest_windows(log, config: RestConfig = RestConfig()):
+    """(start, stop) row pairs of windows of `length` samples tiled in each run of rest (every |dq| < speed), and
+    for each the index of the window before it in the same run (-1 for a run's first): a referred pair."""
+    still = np.abs(log.dq).max(axis=1) < config.speed
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0]))
+    out, before = [], []
+    for a, b in zip(edges[::2], edges[1::2]):
+        starts = range(a, b - config.length + 1, config.length)
+        before += [len(out) + i - 1 if i else -1 for i in range(len(starts))]
+        out += [(k, k + config.length) for k in starts]
+    return out, np.array(before, dtype=int)
+
+
+@dataclass
+class RestData:
+    """The rest windows of one or more logs, as means: q (W, n), tau (W, n) [Nm], Y (W, n, 4) the mean payload
+    regressor; before (W,) the index of the window before in the same rest run (-1: none); the windows' rows for
+    their full samples: log index, start, stop (W, 3)."""
+    q: np.ndarray
+    tau: np.ndarray
+    Y: np.ndarray
+    before: np.ndarray
+    rows: np.ndarray
+    logs: list
+
+    def poses(self, tol=RestConfig.pose) -> int:
+        """How many distinct poses the windows hold (greedy clusters within tol rad on every joint)."""
+        centres = []
+        for q in self.q:
+            if not any(np.abs(q - c).max() < tol for c in centres):
+                centres.append(q)
+        return len(centres)
+
+
+def rest_data(logs, robot: Robot, config: RestConfig = RestConfig()) -> RestData:
+    """RestData of the loaded logs (diagnosis.logs.Log, tau_ext in the paper's sign)."""
+    q, tau, Y, before, rows = [], [], [], [], []
+    for i, log in enumerate(logs):
+        if log.tau_ext is None:
+            raise ValueError(f"logs[{i}]: expected tau_ext (or tau_J and a model), found none in {log.info.get('source')}")
+        wins, prev = rest_windows(log, config)
+        before += [p + len(q) if p >= 0 else -1 for p in prev]
+        for a, b in wins:
+            q.append(log.q[a:b].mean(axis=0))
+            tau.append(log.tau_ext[a:b].mean(axis=0))
+            Y.append(robot.payload_regressor(log.q[a:b]).mean(axis=0))
+            rows.append((i, a, b))
+    n = robot.n
+    return RestData(np.reshape(q, (-1, n)), np.reshape(tau, (-1, n)), np.reshape(Y, (-1, n, 4)),
+                    np.array(before, dtype=int), np.reshape(rows, (-1, 3)).astype(int), list(logs))
+
+
+def pooled_payload(data: RestData, ridge=RestConfig.ridge) -> np.ndarray:
+    """phi (4,) by plain least squares over every window's means: sum_w |tau_w - Y_w phi|^2, a tiny ridge."""
+    G = np.einsum("wjp,wjq->pq", data.Y, data.Y)
+    return np.linalg.solve(G + ridge * np.trace(G) * np.eye(4), np.einsum("wjp,wj->p", data.Y, data.tau))
+
+
+def payload_and_offset(data: RestData, min_sv: float = 1e-3) -> tuple[np.ndarray, bool]:
+    """(phi (4,), joint) of tau_w = Y_w phi + c, phi and the offsets c (n,) fitted together by least squares over the
+    windows, when the poses separate them: every singular value of the design [Y_w, I] (columns scaled to unit
+    norm) above min_sv of the largest (rz, unseen at level poses, is left to the ridge). Else pooled_payload alone
+    (joint False)."""
+    W, n = data.tau.shape
+    D = np.concatenate([data.Y, np.broadcast_to(np.eye(n), (W, n, n))], axis=2).reshape(W * n, 4 + n)
+    scale = np.linalg.norm(D, axis=0)
+    sv = np.linalg.svd(np.delete(D, 3, axis=1) / np.delete(scale, 3), compute_uv=False)   # without rz's column
+    if sv[-1] < min_sv * sv[0]:
+        return pooled_payload(data), False
+    G = D.T @ D
+    x = np.linalg.solve(G + RestConfig.ridge * np.trace(G[:4, :4]) * np.diag(np.r_[np.ones(4), np.zeros(n)]),
+                        D.T @ data.tau.reshape(-1))
+    return x[:4], True
+
+
+def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
+    """The error model of the robot in `data` (RestData) and a report. load "none": nothing was attached (phi = 0);
+    "fit": one unchanged load, fitted with the model (pooled_payload): the part of the robot's error that looks
+    like a payload is then taken into the load, and cannot be calibrated. Per joint, with r_w = tau_w - Y_w phi:
+    offset = mean r_w; absolute = their RMS about it over the P poses, times sqrt(n P / (n P - k)) for the k values
+    fitted (n offsets, and 4 with a load); referred = RMS of r_w - r_before over the pairs of consecutive windows of
+    one rest run (what a window referred to the level just before it still holds: drift, a load's vibration)."""
+    if load not in ("none", "fit"):
+        raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
+    W, n = data.tau.shape
+    P = data.poses()
+    k = n + (4 if load == "fit" else 0)
+    if W < 2 or n * P <= k:
+        raise ValueError(f"logs: expected rest windows at more than {k // n} pose(s) to calibrate with load={load!r}, "
+                         f"found {W} windows at {P} pose(s)")
+    phi, joint = (payload_and_offset(data) if load == "fit" else (np.zeros(4), True))
+    r = data.tau - data.Y @ phi                                   # (W, n)
+    offset = r.mean(axis=0)
+    absolute = np.sqrt(np.mean((r - offset) ** 2, axis=0) * n * P / (n * P - k))
+    pairs = data.before >= 0
+    referred = np.sqrt(np.mean((r[pairs] - r[data.before[pairs]]) ** 2, axis=0)) if pairs.any() else None
+    notes = []
+    if referred is None:
+        notes.append("no rest run holds two windows: the referred error is left at the simulator's value")
+        referred = np.asarray(ErrorModel().referred)
+    if load == "fit" and not joint:
+        notes.append("the poses cannot tell the offsets from the load: the load was fitted alone, and the part of the "
+                     "robot's error that looks like a payload went into it")
+    if P < 3:
+        notes.append(f"only {P} pose(s): the absolute error's spread over poses is barely measured")
+    floor = 0.001                                               # Nm: below the sensor's 0.005 Nm quiescent noise
+    model = ErrorModel(tuple(np.maximum(absolute, floor)), tuple(np.maximum(referred, floor)), tuple(offset),
+                       source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}")
+    theta = theta_of(phi) if load == "fit" else np.zeros(4)
+    report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
+                  theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
+                  referred=list(model.referred), offset=list(model.offset), notes=notes)
+    return model, report
+
+
+def format_report(rep: dict) -> str:
+    f = lambda v: " ".join(f"{x:6.3f}" for x in v)
+    lines = [f"error model from {rep['windows']} rest windows of 200 ms at {rep['poses']} poses "
+             f"({rep['pairs']} referred pairs), load: {rep['load']}"]
+    if rep["load"] == "fit":
+        th = rep["theta"]
+        lines.append(f"  the load fitted with it: m = {th[0]:.3f} kg, r = ({th[1]:+.3f}, {th[2]:+.3f}, {th[3]:+.3f}) m")
+    lines += [f"  joint              " + " ".join(f"{j:>6}" for j in range(1, len(rep['offset']) + 1)),
+              f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
+              f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
+              f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
+    return "\n".join(lines + [f"  note: {x}" for x in rep["notes"]])
+
+
+def main(argv=None, prog: str = "rme.py calibrate") -> int:
+    p = argparse.ArgumentParser(prog=prog, description="Calibrate RME's error model from rest windows of your "
+                                "robot's logs (libfranka-style CSV or franka.py .npz).")
+    p.add_argument("logs", nargs="+", metavar="LOG")
+    p.add_argument("--load", choices=("none", "fit"), default="none",
+                   help="none: nothing attached; fit: one unchanged load, fitted with the model")
+    p.add_argument("--save", metavar="FILE", help="write the model as JSON (RME(calibration=FILE))")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    args = p.parse_args(argv)
+    if args.save and not os.path.isdir(os.path.dirname(os.path.abspath(args.save))):
+        p.error(f"--save: no folder {os.path.dirname(os.path.abspath(args.save))!r}")
+    try:
+        robot = Robot.panda()
+        data = rest_data([load_log(x) for x in args.logs], robot)
+        model, rep = calibrate(data, args.load)
+    except ValueError as err:
+        print(f"{prog}: {err}", file=sys.stderr)
+        return 2
+    if args.save:
+        model.save(args.save)
+        rep["saved"] = args.save
+    print(json.dumps(rep) if args.json else format_report(rep) + (f"\nsaved to {args.save}" if args.save else ""))
+    return 0

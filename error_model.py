@@ -1,0 +1,87 @@
+"""What tau_ext holds besides the payload (the likelihood's error model, Sec. 4.2's sigma_lik made explicit): per
+joint, a constant error over a 200 ms window whose size depends on what the window is referred to, on top of the
+noise that averages down (vi.noise_from_window). Calibrated from a robot's own rest log (diagnosis.calibrate)."""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+N = 7
+
+# An uncalibrated Panda at rest: tau_ext is not zero with nothing attached, "a pose-dependent offset of a few tenths
+# of a Nm, up to about 1 Nm on J1-J4" (Franka's answer on tau_ext at rest, panda_facts.md); we take 0.5 Nm on J1-J4
+# and 0.2 Nm on the wrist joints (the datasheet's 0.15 Nm relative accuracy plus the smaller wrist loads).
+PANDA_ABSOLUTE = (0.5, 0.5, 0.5, 0.5, 0.2, 0.2, 0.2)
+# A window referred to the level just before a change at the same pose: the robot's model error cancels; what is
+# left is the sensor's drift between the two, 5 mNm on the realistic simulated plant (`python sim.py calibration`).
+SIM_REFERRED = 0.005
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """The constant part over a window of what tau_ext holds besides the payload, per joint (n,) [Nm]:
+    tau_ext = Y(q) phi + offset + b + e, with b ~ N(0, absolute^2) for a window taken as it is (absolute: the robot
+    model's pose-dependent error, a sensor offset that drifts) and b ~ N(0, referred^2) for a window less the level
+    before the change at the same pose (what is left: drift, a flexible load's slow vibration). offset: the mean of
+    the model's error over the calibration log's poses, subtracted from absolute windows (zeros: uncalibrated)."""
+    absolute: tuple = PANDA_ABSOLUTE
+    referred: tuple = (SIM_REFERRED,) * N
+    offset: tuple = (0.0,) * N
+    source: str = "uncalibrated Panda (panda_facts.md)"
+
+    def __post_init__(self):
+        for name in ("absolute", "referred", "offset"):
+            v = getattr(self, name)
+            try:
+                a = np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(f"error_model.{name}: expected one number per joint [Nm], found {v!r}") from None
+            if np.iscomplexobj(v) or a.ndim != 1 or a.shape != np.shape(self.absolute) or a.size < 1 or not np.all(np.isfinite(a)):
+                raise ValueError(f"error_model.{name}: expected {np.size(self.absolute)} finite numbers [Nm] (one per "
+                                 f"joint, as absolute), found {v!r}")
+            if name != "offset" and not np.all((a > 0) & (a <= 20.0)):
+                raise ValueError(f"error_model.{name}: expected stds in (0, 20] Nm (a torque sensor's error, not a "
+                                 f"load), found {a.tolist()}")
+            if name == "offset" and np.abs(a).max() > 20.0:
+                raise ValueError(f"error_model.offset: expected offsets within 20 Nm, found {a.tolist()}")
+            object.__setattr__(self, name, tuple(float(x) for x in a))
+        if not isinstance(self.source, str):
+            raise ValueError(f"error_model.source: expected a string, found {self.source!r}")
+
+    def save(self, path) -> None:
+        """Write the model as JSON (rme.py calibrate --save)."""
+        with open(path, "w") as f:
+            json.dump(dict(kind="rme error model", **asdict(self)), f, indent=1)
+
+    @classmethod
+    def load(cls, path) -> "ErrorModel":
+        """Read a model written by save; ValueError naming what is wrong."""
+        if not os.path.isfile(os.fspath(path)):
+            raise ValueError(f"error_model: expected a calibration file (.json), found no file at {path!r}")
+        try:
+            with open(path, encoding="utf-8-sig") as f:
+                data = json.load(f)
+        except (OSError, ValueError) as err:
+            raise ValueError(f"error_model: could not read {path!r} as JSON: {err}") from None
+        if not isinstance(data, dict) or data.get("kind") != "rme error model":
+            raise ValueError(f"error_model: expected a file written by `rme.py calibrate --save`, found {path!r}")
+        missing = {"absolute", "referred", "offset"} - set(data)
+        if missing:
+            raise ValueError(f"error_model: {path!r} lacks {sorted(missing)}")
+        return cls(data["absolute"], data["referred"], data["offset"], str(data.get("source", path)))
+
+
+def as_error_model(x, n: int = N) -> ErrorModel:
+    """An ErrorModel from an ErrorModel, a path to its JSON, or None: the uncalibrated Panda (n = 7), or for another
+    arm of n joints its big joints' 0.5 Nm on every joint (referred: the simulator's)."""
+    if x is None:
+        return ErrorModel() if n == N else ErrorModel((PANDA_ABSOLUTE[0],) * n, (SIM_REFERRED,) * n, (0.0,) * n,
+                                                      source=f"uncalibrated arm of {n} joints")
+    if isinstance(x, ErrorModel):
+        return x
+    if isinstance(x, (str, os.PathLike)):
+        return ErrorModel.load(x)
+    raise ValueError(f"calibration: expected an ErrorModel, a path to its JSON or None, found {type(x).__name__}")

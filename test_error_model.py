@@ -1,0 +1,162 @@
+"""The error model of the likelihood: what an absolute and a referred window carry besides the payload, its
+calibration from rest windows, the check of the network's prior against the window's evidence."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import vi
+from diagnosis.calibrate import RestData, calibrate
+from diagnosis.logs import write_npz
+from dynamics import Q_READY, Robot, phi_of
+from error_model import ErrorModel
+from nn_train import random_pose
+from rme import RME
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROBOT = Robot.panda()
+ABS = np.array([0.4, 0.3, 0.35, 0.3, 0.15, 0.1, 0.12])      # Nm: a drawn robot's error over poses
+OFFSET = np.array([0.2, -0.8, 0.1, -0.6, 0.05, -0.2, 0.0])    # Nm: its mean
+REF = np.array([0.02, 0.05, 0.04, 0.05, 0.03, 0.01, 0.01])   # Nm: what a referred window keeps
+
+
+def _window(rng, q, theta, bias, T=200, noise=0.02):
+    """q, tau (T, 7) at rest at q: the payload's torque, a constant bias (7,) and white noise."""
+    Q = np.repeat(q[None], T, axis=0) + rng.normal(0, 1e-5, (T, 7))
+    return Q, ROBOT.payload_regressor(Q) @ phi_of(theta) + bias + rng.normal(0, noise, (T, 7))
+
+
+def test_error_model_refuses_what_is_no_sensor_error(tmp_path):
+    for bad in (dict(absolute=(0.5,) * 6), dict(absolute=(-0.1,) * 7), dict(referred=(np.nan,) * 7),
+                dict(offset=(1j,) * 7), dict(absolute=(50.0,) * 7), dict(absolute="0.5")):
+        with pytest.raises(ValueError, match="error_model"):
+            ErrorModel(**bad)
+    m = ErrorModel(tuple(ABS), tuple(REF), tuple(OFFSET), "drawn")
+    m.save(tmp_path / "m.json")
+    assert ErrorModel.load(tmp_path / "m.json") == m
+    (tmp_path / "x.json").write_text(json.dumps({"effects": []}))
+    with pytest.raises(ValueError, match="rme.py calibrate"):
+        ErrorModel.load(tmp_path / "x.json")
+    with pytest.raises(ValueError, match="calibration"):
+        RME(calibration=42)
+
+
+def test_calibration_recovers_a_drawn_robots_error():
+    """Rest windows at 150 random poses, each pose's bias drawn from N(OFFSET, ABS^2), consecutive windows of a
+    pose differing by N(0, REF^2): the calibration recovers the three within 20 % (the std of a std estimated from
+    150 poses is about 6 %), with the load fitted or known to be none."""
+    rng = np.random.default_rng(3)
+    theta = np.array([0.6, 0.02, -0.03, 0.08])
+    q, tau, Y, before = [], [], [], []
+    for p in range(150):
+        pose = random_pose(ROBOT, rng)
+        b = OFFSET + ABS * rng.standard_normal(7)
+        for k in range(3):
+            q.append(pose)
+            Y.append(ROBOT.payload_regressor(pose))
+            tau.append(Y[-1] @ phi_of(theta) + b + REF / np.sqrt(2) * rng.standard_normal(7))
+            before.append(len(q) - 2 if k else -1)
+    data = RestData(np.array(q), np.array(tau), np.array(Y), np.array(before), np.zeros((len(q), 3), int), [None])
+    for load, want in (("fit", theta), ("none", None)):
+        d = data if load == "fit" else RestData(data.q, data.tau - data.Y @ phi_of(theta), data.Y, data.before,
+                                                data.rows, data.logs)
+        model, rep = calibrate(d, load)
+        assert rep["poses"] == 150
+        np.testing.assert_allclose(model.absolute, ABS, rtol=0.2)
+        np.testing.assert_allclose(model.referred, REF, rtol=0.2)
+        np.testing.assert_allclose(model.offset, OFFSET, atol=0.1)
+        if want is not None:
+            np.testing.assert_allclose(rep["theta"][0], want[0], rtol=0.05)
+
+
+def test_calibrated_intervals_cover_absolute_and_referred_windows():
+    """Fresh draws from a calibrated robot (payloads in the network's range, random poses): the 2-sigma interval of
+    the mass holds the truth in 90-99 % of absolute windows (no baseline) and of referred ones (a baseline taken at
+    the same pose before the load: its bias cancels but for REF); the uncalibrated model's 5 mNm referred error
+    would cover the referred windows far less often."""
+    rng = np.random.default_rng(11)
+    cal = RME(rng=np.random.default_rng(0), calibration=ErrorModel(tuple(ABS), tuple(REF), tuple(OFFSET)))
+    hits = {"absolute": [], "referred": []}
+    for i in range(120):
+        pose, theta = random_pose(ROBOT, rng), np.r_[rng.uniform(0.2, 1.5), rng.uniform(-0.06, 0.06, 2),
+                                                     rng.uniform(0.0, 0.15)]
+        b = OFFSET + ABS * rng.standard_normal(7)
+        q, tau = _window(rng, pose, theta, b)
+        e = cal.estimate(q, tau)
+        hits["absolute"].append(abs(e.mean[0] - theta[0]) < 2 * e.std[0])
+        base = b + REF * rng.standard_normal(7)                 # the level before the load, same pose
+        e = cal.estimate(q, tau, baseline=base)
+        hits["referred"].append(abs(e.mean[0] - theta[0]) < 2 * e.std[0])
+    for kind, h in hits.items():
+        assert 0.90 <= np.mean(h) <= 0.99, (kind, np.mean(h))
+
+
+def test_an_absolute_window_is_less_certain_than_a_referred_one():
+    rng = np.random.default_rng(5)
+    q, tau = _window(rng, Q_READY, np.array([0.8, 0.03, -0.02, 0.1]), np.zeros(7))
+    est = RME(rng=np.random.default_rng(0))
+    absolute, referred = est.estimate(q, tau), est.estimate(q, tau, baseline=np.zeros(7))
+    assert absolute.std[0] > 3 * referred.std[0]
+
+
+def test_a_narrow_prior_gives_way_to_a_window_it_conflicts_with():
+    """vi.fit with a narrow prior that misplaces the CoM by 0.15 m (10 of its sigmas) and a broad alternative: the
+    window's evidence picks the broad one, and the estimate lands within 3 sigma of the truth; a narrow prior that agrees with
+    the window is kept. Fresh poses and payloads, every draw must hold."""
+    rng = np.random.default_rng(2)
+    broad = (np.array([1.5, 0, 0, 0]), np.array([1.5, 0.15, 0.15, 0.15]))
+    narrow = np.array([0.5, 0.015, 0.015, 0.05])
+    for _ in range(10):
+        pose = random_pose(ROBOT, rng)
+        theta = np.r_[rng.uniform(0.5, 1.5), rng.uniform(-0.08, 0.08, 2), 0.1]
+        q, tau = _window(rng, pose, theta, np.zeros(7))
+        Y = ROBOT.payload_regressor(q)
+        wrong = theta + np.r_[0.0, 0.15, 0.0, 0.0]
+        post = vi.fit(Y, tau, wrong, rng=np.random.default_rng(0), sigma_prior=narrow, alternative=broad)
+        assert post.prior == "broad" and abs(post.mean[1] - theta[1]) < 3 * post.marginal_std[1], (post.mean, theta)
+        post = vi.fit(Y, tau, theta, rng=np.random.default_rng(0), sigma_prior=narrow, alternative=broad)
+        assert post.prior == "network"
+
+
+def test_log_evidence_matches_a_closed_form_where_the_model_is_linear():
+    """With r known to be the prior mean to 1e-6 m, the payload is linear in m: the Laplace log evidence's difference
+    between two priors on m must match the Gaussian closed form's."""
+    rng = np.random.default_rng(4)
+    q, tau = _window(rng, Q_READY, np.array([0.7, 0.0, 0.0, 0.0]), np.zeros(7), noise=0.05)
+    Y = ROBOT.payload_regressor(q)
+    win = vi.precompute(Y, tau, noise_std=np.full(7, 0.05), settings=vi.VISettings(offset_std=0.01))
+    tiny = 1e-6
+    evid = lambda m0, s0: vi.log_evidence(win, np.array([m0, 0, 0, 0]), np.array([s0, tiny, tiny, tiny]))
+    a, b = win.A[0, 0], win.b[0]                                # NLL in m: a m^2 / 2 - b m (r = 0)
+
+    def closed(m0, s0):                                        # log of int exp(-NLL) N(m; m0, s0^2) dm, same constants
+        h = a + 1 / s0**2
+        mean = (b + m0 / s0**2) / h
+        return 0.5 * h * mean**2 - 0.5 * m0**2 / s0**2 - np.log(s0) - 0.5 * np.log(h)
+    assert evid(0.6, 0.5) - evid(1.5, 1.5) == pytest.approx(closed(0.6, 0.5) - closed(1.5, 1.5), abs=1e-3)
+
+
+def test_calibrate_command_writes_a_model_rme_reads(tmp_path):
+    rng = np.random.default_rng(8)
+    t, q = [], []
+    for k in range(6):                                          # 6 poses held 0.6 s each, nothing attached
+        pose = random_pose(ROBOT, rng)
+        q.append(np.repeat(pose[None], 600, axis=0))
+    q = np.vstack(q) + rng.normal(0, 1e-5, (3600, 7))             # encoder noise: no row repeats another
+    bias = np.repeat(ABS * rng.standard_normal((6, 7)) + OFFSET, 600, axis=0)
+    tau = bias + rng.normal(0, 0.02, q.shape)
+    t = np.arange(len(q)) * 1e-3
+    write_npz(tmp_path / "rest.npz", dict(t=t, q=q, dq=np.zeros_like(q), tau_J=np.zeros_like(q), tau_ext=tau))
+    out = subprocess.run([sys.executable, os.path.join(HERE, "rme.py"), "calibrate", str(tmp_path / "rest.npz"),
+                          "--save", str(tmp_path / "robot.json"), "--json"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    rep = json.loads(out.stdout)
+    assert rep["poses"] == 6 and rep["load"] == "none"
+    model = RME(calibration=str(tmp_path / "robot.json")).error_model
+    np.testing.assert_allclose(model.offset, np.mean(bias[::600], axis=0), atol=0.02)
+    bad = subprocess.run([sys.executable, os.path.join(HERE, "rme.py"), "calibrate", str(tmp_path / "none.csv")],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr and "none.csv" in bad.stderr
