@@ -66,6 +66,9 @@ class RME(Streaming):
                                                        #   the arm has been still, slower than monitor_speed, than
                                                        #   monitor_slow[0]
         self.history: list[Estimate] = []
+        c, m = settings.max_com, settings.max_mass                  # every plausible payload: a broad prior, 2 sigma
+        self._broad = (np.array([m / 2, 0, 0, 0]), np.array([m / 2, c / 2, c / 2, c / 2]),   # to the box's edge,
+                       np.array([0.0, -c, -c, -c]), np.array([m, c, c, c]))                 # and the box
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
     @property
@@ -150,7 +153,7 @@ class RME(Streaming):
         s = self.settings
         post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias,
                       sigma_prior=None if self.net is None else self.net.prior_std(prior, s.vi.sigma_prior, R[-1]),
-                      alternative=(np.array([s.max_mass / 2, 0, 0, 0]), np.array([s.max_mass / 2] + [s.max_com / 2] * 3)))
+                      alternative=self._broad)
         e = Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
                      time.perf_counter() - start, post.iterations, post.converged)
         e.prior_source = post.prior

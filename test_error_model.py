@@ -107,7 +107,7 @@ def test_a_narrow_prior_gives_way_to_a_window_it_conflicts_with():
     window's evidence picks the broad one, and the estimate lands within 3 sigma of the truth; a narrow prior that agrees with
     the window is kept. Fresh poses and payloads, every draw must hold."""
     rng = np.random.default_rng(2)
-    broad = (np.array([1.5, 0, 0, 0]), np.array([1.5, 0.15, 0.15, 0.15]))
+    broad = (np.array([1.5, 0, 0, 0]), np.array([1.5, 0.15, 0.15, 0.15]), np.array([0, -.3, -.3, -.3]), np.r_[3, .3, .3, .3])
     narrow = np.array([0.5, 0.015, 0.015, 0.05])
     for _ in range(10):
         pose = random_pose(ROBOT, rng)

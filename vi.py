@@ -317,7 +317,7 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
     sigma_prior (4,) = settings.sigma_prior unless given (e.g. widened where the network extrapolates), speed (n,)
     the joints' speed in the window (joint_speed; a list with lists of windows; None: at rest), bias_std (n,) the
     std of the window's constant error (error_model; a list with lists of windows; None: settings.offset_std).
-    alternative: (mean (4,), std (4,)) of a broad prior over every plausible payload, taken instead of the network's
+    alternative: (mean, std, lo, hi) (4,) each, a broad prior over every plausible payload, taken instead of the network's
     where the window's Laplace evidence favours it by more than settings.conflict (prior_conflict); `Posterior.prior`
     names the one used.
 
@@ -349,7 +349,7 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
     source = "network"
     if alternative is not None and prior_conflict(window, (mu_prior, sp), alternative, settings.map_steps) > \
             settings.conflict:
-        (mu_prior, sp), source = (np.asarray(a, dtype=float) for a in alternative), "broad"
+        (mu_prior, sp), source = (np.asarray(a, dtype=float) for a in alternative[:2]), "broad"
     if settings.warm_start:
         mu0, H = map_estimate(window, mu_prior, sp, settings.map_steps)
         sigma0 = 1.0 / np.sqrt(np.diag(H))
@@ -366,20 +366,25 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
                      history, source)
 
 
-def log_evidence(window, mu_prior, sigma_prior, steps=20):
+def log_evidence(window, mu_prior, sigma_prior, steps=20, box=None):
     """Laplace approximation of log p(D) under the prior N(mu_prior, diag(sigma_prior^2)), up to a constant the
-    same for every prior: -E(theta*) - sum log sp - 1/2 log det H at the MAP theta* (map_estimate, gauss_newton)."""
+    same for every prior: -E(theta*) - sum log sp - 1/2 log det H at the MAP theta* (map_estimate, gauss_newton).
+    box (lo (4,), hi (4,)): the prior's support; -inf when the MAP lies outside it (no payload there explains D)."""
     theta, H = map_estimate(window, mu_prior, sigma_prior, steps)
+    if box is not None and not np.all((box[0] <= theta) & (theta <= box[1])):
+        return -np.inf
     E = gauss_newton(theta, window, mu_prior, sigma_prior)[0]
     return float(-E - np.sum(np.log(sigma_prior)) - 0.5 * np.linalg.slogdet(H)[1])
 
 
 def prior_conflict(window, prior, alternative, steps=20):
-    """log p(D | alternative) - log p(D | prior) (Laplace, log_evidence), both (mean (4,), std (4,)): > 0 when the
-    window is better explained with the broad alternative than with the network's narrow prior, i.e. the network's
-    prediction conflicts with the data (a payload outside its training range, a robot unlike the one it was trained
-    on). fit takes the broad prior beyond VISettings.conflict."""
-    return log_evidence(window, *alternative, steps) - log_evidence(window, *prior, steps)
+    """log p(D | alternative) - log p(D | prior) (Laplace, log_evidence): prior (mean (4,), std (4,)), alternative
+    (mean, std, lo, hi) a broad prior over every plausible payload, lo <= theta <= hi. > 0 when the window is better
+    explained by a plausible payload the network's narrow prior does not expect (one outside its training range, a
+    robot unlike the one it was trained on); -inf when the broad prior's best payload is not plausible (a window no
+    payload explains: a push, a transient). fit takes the broad prior beyond VISettings.conflict."""
+    mean, std, lo, hi = alternative
+    return log_evidence(window, mean, std, steps, (lo, hi)) - log_evidence(window, *prior, steps)
 
 
 def _draws(rng, chunk, samples, antithetic):

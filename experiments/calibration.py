@@ -9,6 +9,7 @@ import numpy as np
 
 from cpic import JointHold
 from dynamics import Q_READY
+from experiments.baselines import methods
 from experiments.episodes import measure, simulated_window
 from nn_train import DataConfig, random_pose
 from rme import RME
@@ -36,7 +37,9 @@ def coverage(estimates, thetas):
     err = np.array([e.mean - th for e, th in zip(estimates, thetas)]).reshape(-1, 4)
     std = np.array([e.std for e in estimates]).reshape(-1, 4)
     rms = np.sqrt(np.mean(err**2, axis=0)) if len(err) else np.full(4, np.nan)
-    return dict(coverage=np.mean(np.abs(err) < 2 * std, axis=0).tolist() if len(err) else [np.nan] * 4,
+    none = np.isnan(std).all(axis=0) if len(err) else np.ones(4, bool)         # a method that reports no sigma
+    return dict(coverage=np.where(none, np.nan, np.mean(np.abs(err) < 2 * std, axis=0)).tolist() if len(err) else
+                [np.nan] * 4,
                 sharpness=(std.mean(axis=0) / rms).tolist() if len(err) else [np.nan] * 4,
                 rmse=rms.tolist(), count=len(err))
 
@@ -72,10 +75,14 @@ def rest_spread(rng, windows=20, theta=(0.8, 0.03, -0.02, 0.12), length=200):
 
 
 def calibration_benchmark(windows=200, seed=0):
-    """The whole benchmark as one dict (the JSON of `python sim.py calibration --json`)."""
+    """The whole benchmark as one dict (the JSON of `python sim.py calibration --json`): RME's table, and the
+    baselines' (least squares: RMS error only; the range rule) on the same windows."""
     rng = np.random.default_rng(seed)
-    table = calibration_table(calibration_windows(windows, rng), RME(rng=np.random.default_rng(seed)))
-    return dict(table=table, rest=rest_spread(rng), settings=dict(windows=windows, seed=seed, preset="realistic"))
+    wins = calibration_windows(windows, rng)
+    table = calibration_table(wins, RME(rng=np.random.default_rng(seed)))
+    base = {name: calibration_table(wins, est)["all"] for name, est in methods(seed=seed).items() if name != "RME"}
+    return dict(table=table, baselines=base, rest=rest_spread(rng),
+                settings=dict(windows=windows, seed=seed, preset="realistic"))
 
 
 def print_benchmark(res):
@@ -84,6 +91,10 @@ def print_benchmark(res):
     for group, row in res["table"].items():
         cells = [f"{100 * c:5.1f} | {s:4.2f} | {r:.4f}" for c, s, r in zip(row["coverage"], row["sharpness"], row["rmse"])]
         print(f"{group:<16}{row['count']:>5}  " + "".join(f"{c:>22}" for c in cells))
+    for name, row in res["baselines"].items():
+        cells = [f"{'-' if np.isnan(c) else f'{100 * c:5.1f}'} | {'-' if np.isnan(sh) else f'{sh:4.2f}'} | {r:.4f}"
+                 for c, sh, r in zip(row["coverage"], row["sharpness"], row["rmse"])]
+        print(f"{name + ' (all)':<16}{row['count']:>5}  " + "".join(f"{c:>22}" for c in cells))
     rest = res["rest"]
     print(f"rest windows of one load {rest['theta']} ({rest['windows']} x 200 ms): spread across windows vs mean sigma")
     for n, sp, sd in zip(NAMES, rest["spread"], rest["mean_std"]):

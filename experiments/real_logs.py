@@ -9,30 +9,13 @@ import os
 
 import numpy as np
 
-import vi
 from diagnosis.calibrate import RestConfig, pooled_payload, rest_data
 from diagnosis.logs import load_log
 from dynamics import theta_of
-from rme import RME, RMESettings
+from experiments.baselines import methods
+from rme import RME
 
 NAMES = ("m", "rx", "ry", "rz")
-
-
-def least_squares(Y, tau, ridge=RestConfig.ridge):
-    """Plain least squares on one window's means: tau (n,) = Y (n, 4) phi, a tiny ridge. Returns theta (4,)."""
-    G = Y.T @ Y
-    return theta_of(np.linalg.solve(G + ridge * np.trace(G) * np.eye(4), Y.T @ tau))
-
-
-def methods(robot, rng_seed=0, calibration=None):
-    """{name: estimate(q, tau, baseline) -> (mean (4,), std (4,))}: plain least squares (no std), the authors' range
-    rule (VISettings(noise_rule="range")), RME as shipped (or with the calibration given)."""
-    make = lambda **kw: RME(robot, rng=np.random.default_rng(rng_seed), **kw)
-    rme, rng_rule = make(calibration=calibration), make(settings=RMESettings(vi=vi.VISettings(noise_rule="range")))
-    ls = lambda q, tau, base: (least_squares(robot.payload_regressor(q).mean(axis=0),
-                                             tau.mean(axis=0) - (0 if base is None else base)), np.full(4, np.nan))
-    run = lambda est: (lambda q, tau, base: (lambda e: (e.mean, e.std, e.prior_source))(est.estimate(q, tau, base)))
-    return {"least squares": ls, "range rule": run(rng_rule), "RME": run(rme)}
 
 
 def _summary(M, S, truth, names=NAMES):
@@ -65,15 +48,13 @@ def real_logs(paths, calibration=None, config: RestConfig = RestConfig()) -> dic
     samples = lambda w: (logs[data.rows[w, 0]].q[data.rows[w, 1]:data.rows[w, 2]],
                          logs[data.rows[w, 0]].tau_ext[data.rows[w, 1]:data.rows[w, 2]])
     pairs = np.flatnonzero(data.before >= 0)
-    for name, fn in methods(est.robot, calibration=calibration).items():
-        out = [fn(*samples(w), None) for w in range(len(data.tau))]
-        M, S = np.array([o[0] for o in out]), np.array([o[1] for o in out])
-        res["absolute"][name] = _summary(M, S, pooled)
-        if len(out[0]) > 2:
-            res["absolute"][name]["broad prior"] = float(np.mean([o[2] == "broad" for o in out]))
-        ref = [fn(*samples(w), data.tau[data.before[w]]) for w in pairs]
+    for name, est in methods(est.robot, calibration=calibration).items():
+        out = [est.estimate(*samples(w)) for w in range(len(data.tau))]
+        res["absolute"][name] = _summary(np.array([e.mean for e in out]), np.array([e.std for e in out]), pooled)
+        res["broad prior"] = res.get("broad prior", {}) | {name: float(np.mean([e.prior_source == "broad" for e in out]))}
+        ref = [est.estimate(*samples(w), baseline=data.tau[data.before[w]]) for w in pairs]
         if ref:
-            res["referred"][name] = _summary(np.array([o[0] for o in ref])[:, :1], np.array([o[1] for o in ref])[:, :1],
+            res["referred"][name] = _summary(np.array([e.mean for e in ref])[:, :1], np.array([e.std for e in ref])[:, :1],
                                              [0.0], names=("m",))
     return res
 
