@@ -22,6 +22,8 @@ class RestConfig:
     speed: float = 0.01         # rad/s: every |dq| below this in every sample of the window (RMESettings.rest_speed)
     pose: float = 0.05          # rad: windows whose mean poses are this close on every joint count as one pose
     ridge: float = 1e-6         # relative ridge of the least-squares payload (rz is not seen at a level pose)
+    separable: float = 0.05     # ours: the load and the offsets are fitted together when the fitted mass's standard
+                                #   error is at most this share of it (else the poses cannot tell them apart)
 
 
 def rest_windows(log, config: RestConfig = RestConfig()):
@@ -82,21 +84,22 @@ def pooled_payload(data: RestData, ridge=RestConfig.ridge) -> np.ndarray:
     return np.linalg.solve(G + ridge * np.trace(G) * np.eye(4), np.einsum("wjp,wj->p", data.Y, data.tau))
 
 
-def payload_and_offset(data: RestData, min_sv: float = 1e-3) -> tuple[np.ndarray, bool]:
-    """(phi (4,), joint) of tau_w = Y_w phi + c, phi and the offsets c (n,) fitted together by least squares over the
-    windows, when the poses separate them: every singular value of the design [Y_w, I] (columns scaled to unit
-    norm) above min_sv of the largest (rz, unseen at level poses, is left to the ridge). Else pooled_payload alone
-    (joint False)."""
+def payload_and_offset(data: RestData, config: RestConfig = RestConfig()) -> tuple[np.ndarray, bool, float]:
+    """(phi (4,), joint, mass std [kg]) of tau_w = Y_w phi + c, phi and the offsets c (n,) fitted together by least
+    squares over the windows, when the poses separate them: the fitted mass's standard error (the residual's
+    variance, the windows of a pose counted as one sample) at most config.separable of the mass. Else the load is
+    fitted alone (pooled_payload; joint False): the offsets it leaves are what the poses cannot tell from it."""
     W, n = data.tau.shape
     D = np.concatenate([data.Y, np.broadcast_to(np.eye(n), (W, n, n))], axis=2).reshape(W * n, 4 + n)
-    scale = np.linalg.norm(D, axis=0)
-    sv = np.linalg.svd(np.delete(D, 3, axis=1) / np.delete(scale, 3), compute_uv=False)   # without rz's column
-    if sv[-1] < min_sv * sv[0]:
-        return pooled_payload(data), False
     G = D.T @ D
-    x = np.linalg.solve(G + RestConfig.ridge * np.trace(G[:4, :4]) * np.diag(np.r_[np.ones(4), np.zeros(n)]),
+    x = np.linalg.solve(G + config.ridge * np.trace(G[:4, :4]) * np.diag(np.r_[np.ones(4), np.zeros(n)]),
                         D.T @ data.tau.reshape(-1))
-    return x[:4], True
+    res = data.tau.reshape(-1) - D @ x
+    var = res @ res / max(W * n - 4 - n, 1) * W / data.poses(config.pose)
+    std = float(np.sqrt(max(np.linalg.pinv(G)[0, 0] * var, 0.0)))
+    if std > config.separable * abs(x[0]):
+        return pooled_payload(data, config.ridge), False, std
+    return x[:4], True, std
 
 
 def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
@@ -114,7 +117,7 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     if W < 2 or n * P <= k:
         raise ValueError(f"logs: expected rest windows at more than {k // n} pose(s) to calibrate with load={load!r}, "
                          f"found {W} windows at {P} pose(s)")
-    phi, joint = (payload_and_offset(data) if load == "fit" else (np.zeros(4), True))
+    phi, joint, mass_std = payload_and_offset(data) if load == "fit" else (np.zeros(4), True, 0.0)
     r = data.tau - data.Y @ phi                                   # (W, n)
     offset = r.mean(axis=0)
     absolute = np.sqrt(np.mean((r - offset) ** 2, axis=0) * n * P / (n * P - k))
@@ -125,8 +128,9 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
         notes.append("no rest run holds two windows: the referred error is left at the simulator's value")
         referred = np.asarray(ErrorModel().referred)
     if load == "fit" and not joint:
-        notes.append("the poses cannot tell the offsets from the load: the load was fitted alone, and the part of the "
-                     "robot's error that looks like a payload went into it")
+        notes.append(f"the poses cannot tell the offsets from the load (fitted together, its mass would have a "
+                     f"standard error of {mass_std:.3f} kg): the load was fitted alone, and the part of the robot's "
+                     f"error that looks like a payload went into it")
     if P < 3:
         notes.append(f"only {P} pose(s): the absolute error's spread over poses is barely measured")
     floor = 0.001                                               # Nm: below the sensor's 0.005 Nm quiescent noise
@@ -134,6 +138,7 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                        source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}")
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
+                  load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
                   referred=list(model.referred), offset=list(model.offset), notes=notes)
     return model, report
