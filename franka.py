@@ -17,6 +17,7 @@ import numpy as np
 
 from cpic import CPIC, Attractor, CPICConfig, LimitCycle
 from dynamics import Robot
+from error_model import as_error_model
 from rme import RME
 from rme_settings import RMESettings, faulty as faulty_sample
 from robot.backends import (Q_START, FrankySimBackend, PandaPyBackend, PylibfrankaBackend, SimBackend, State,
@@ -326,6 +327,8 @@ def main(argv=None) -> int:
     ap.add_argument("--paced", action="store_true", help="with --sim: one state per ms of wall time, as a robot")
     ap.add_argument("--worker", choices=WORKERS, default="process", help="where RME's estimates run beside the loop")
     ap.add_argument("--sync-estimate", action="store_true", help="RME's estimates within the callback, no worker")
+    ap.add_argument("--calibration", metavar="FILE", default=None,
+                    help="RME's error model of this robot (python rme.py calibrate LOG --save FILE)")
     args = ap.parse_args(argv)
     if not args.sim and not args.robot_ip:
         ap.error("--robot-ip: expected the robot's address (or --sim), found none")
@@ -336,13 +339,18 @@ def main(argv=None) -> int:
         if not ok:
             raise ValueError(f"{name}: expected {want}, found {v!r}")
     robot = Robot.panda()
+    try:                                               # the estimator, rebuilt as it is in a worker process; a
+        spec = EstimatorSpec(seed=args.seed + 1, calibration=args.calibration)   # calibration file that cannot
+        as_error_model(args.calibration)                                         # be read stops us here
+    except ValueError as err:
+        print(f"franka.py: not started: {err}", file=sys.stderr)
+        return 2
     try:
         backend = make_backend(args, np.random.default_rng(args.seed))
     except RuntimeError as err:
         print(f"franka.py: not started: {err}", file=sys.stderr)
         return 2
     controller = make_controller(robot, backend.initial.q, args.task, args.stiffness_scale)
-    spec = EstimatorSpec(seed=args.seed + 1)           # the estimator, rebuilt as it is in a worker process
     try:
         worker = None if args.sync_estimate else make_worker(args.worker, spec)   # the estimates (1.5-4 ms)
     except (RuntimeError, ValueError):

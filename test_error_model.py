@@ -160,3 +160,26 @@ def test_calibrate_command_writes_a_model_rme_reads(tmp_path):
     bad = subprocess.run([sys.executable, os.path.join(HERE, "rme.py"), "calibrate", str(tmp_path / "none.csv")],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "none.csv" in bad.stderr
+
+
+def test_a_worker_and_the_robot_bridge_rebuild_the_calibrated_estimator(tmp_path):
+    from robot.worker import EstimatorSpec
+    model = ErrorModel(tuple(ABS), tuple(REF), tuple(OFFSET), "drawn")
+    model.save(tmp_path / "robot.json")
+    assert EstimatorSpec(calibration=str(tmp_path / "robot.json")).build().error_model == model
+    out = subprocess.run([sys.executable, os.path.join(HERE, "franka.py"), "--sim", "--seconds", "0.05",
+                          "--calibration", str(tmp_path / "none.json")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "none.json" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_broad_prior_has_no_evidence_where_its_best_payload_is_outside_its_box():
+    """A window of 0.9 kg at rx = 0.25 m: with the box |r| <= 0.3 m its evidence is finite, with |r| <= 0.1 m the
+    MAP lies outside and the hypothesis gets none (-inf), whatever the Gaussian alone would say."""
+    rng = np.random.default_rng(6)
+    q, tau = _window(rng, random_pose(ROBOT, rng), np.array([0.9, 0.25, 0.0, 0.05]), np.zeros(7))
+    win = vi.precompute(ROBOT.payload_regressor(q), tau)
+    mean, std = np.array([1.5, 0, 0, 0]), np.array([1.5, .15, .15, .15])
+    wide, tight = (np.r_[0, -.3, -.3, -.3], np.r_[3, .3, .3, .3]), (np.r_[0, -.1, -.1, -.1], np.r_[3, .1, .1, .1])
+    assert np.isfinite(vi.log_evidence(win, mean, std, box=wide))
+    assert vi.log_evidence(win, mean, std, box=tight) == -np.inf
+    assert np.isfinite(vi.log_evidence(win, mean, std))
