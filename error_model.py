@@ -31,6 +31,7 @@ class ErrorModel:
     referred: tuple = (SIM_REFERRED,) * N
     offset: tuple = (0.0,) * N
     source: str = "uncalibrated Panda (panda_facts.md)"
+    correlation: tuple | None = None   # (n, n) of the absolute error across joints (None: independent joints)
 
     def __post_init__(self):
         for name in ("absolute", "referred", "offset"):
@@ -48,8 +49,27 @@ class ErrorModel:
             if name == "offset" and np.abs(a).max() > 20.0:
                 raise ValueError(f"error_model.offset: expected offsets within 20 Nm, found {a.tolist()}")
             object.__setattr__(self, name, tuple(float(x) for x in a))
+        if self.correlation is not None:
+            try:
+                R = np.asarray(self.correlation, dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(f"error_model.correlation: expected an (n, n) matrix, found {self.correlation!r}") \
+                    from None
+            k = len(self.absolute)
+            if np.iscomplexobj(self.correlation) or R.shape != (k, k) or not np.all(np.isfinite(R)) or \
+                    not np.allclose(R, R.T) or not np.allclose(np.diag(R), 1.0) or np.linalg.eigvalsh(R)[0] <= 1e-9:
+                raise ValueError(f"error_model.correlation: expected a ({k}, {k}) positive definite correlation "
+                                 f"matrix (symmetric, unit diagonal), found {R.tolist()}")
+            object.__setattr__(self, "correlation", tuple(tuple(float(x) for x in row) for row in R))
         if not isinstance(self.source, str):
             raise ValueError(f"error_model.source: expected a string, found {self.source!r}")
+
+    @property
+    def absolute_cov(self):
+        """What an absolute window's constant error is, for vi.precompute's bias_std: (n,) stds of independent
+        joints, or the (n, n) covariance diag(absolute) correlation diag(absolute)."""
+        a = np.asarray(self.absolute)
+        return a if self.correlation is None else a[:, None] * np.asarray(self.correlation) * a[None, :]
 
     def save(self, path) -> None:
         """Write the model as JSON (rme.py calibrate --save)."""
@@ -71,7 +91,8 @@ class ErrorModel:
         missing = {"absolute", "referred", "offset"} - set(data)
         if missing:
             raise ValueError(f"error_model: {path!r} lacks {sorted(missing)}")
-        return cls(data["absolute"], data["referred"], data["offset"], str(data.get("source", path)))
+        return cls(data["absolute"], data["referred"], data["offset"], str(data.get("source", path)),
+                   data.get("correlation"))
 
 
 def as_error_model(x, n: int = N) -> ErrorModel:

@@ -137,23 +137,31 @@ class RME(Streaming):
     def _estimate(self, q, tau, referred=True):
         """Network prior and VI on checked, corrected windows (or lists): (Estimate, S) with S (n + 5, 4) what
         judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows).
-        referred: the window is less the level before the change (else absolute; a list with lists of windows)."""
+        referred: the window is less the level before the change (else absolute; a list with lists of windows).
+        The network was trained on referred windows (nn_train: tau_ext less its mean before the attachment): its
+        prior stands for those, checked against the window's evidence (vi.prior_conflict); an absolute window, which
+        holds the robot's own model error too, gets the broad prior over every plausible payload."""
         start, many, Ys, priors = time.perf_counter(), isinstance(q, list), [], []
+        referred = ([referred] * len(q) if isinstance(referred, bool) else referred) if many else referred
+        network = self.net is not None and bool(np.all(referred))
         for qi, ti in zip(q if many else [q], tau if many else [tau]):
             _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
             Ys.append(self.robot.payload_regressor_from(J, R))
-            priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if self.net is not None else np.zeros(4))
+            priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if network else np.zeros(4))
         prior = np.mean(priors, axis=0)
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
         speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
-        em = self.error_model
-        referred = ([referred] * len(q) if isinstance(referred, bool) else referred) if many else referred
-        bias = [em.referred if r else em.absolute for r in referred] if many else \
-            (em.referred if referred else em.absolute)
-        s = self.settings
-        post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias,
-                      sigma_prior=None if self.net is None else self.net.prior_std(prior, s.vi.sigma_prior, R[-1]),
-                      alternative=self._broad)
+        em, s = self.error_model, self.settings
+        bias = [em.referred if r else em.absolute_cov for r in referred] if many else \
+            (em.referred if referred else em.absolute_cov)
+        if np.all(referred):
+            sp = None if self.net is None else self.net.prior_std(prior, s.vi.sigma_prior, R[-1])
+            post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias,
+                          sigma_prior=sp, alternative=self._broad)
+        else:
+            prior, sp = self._broad[:2]
+            post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias, sigma_prior=sp)
+            post.prior = "broad"
         e = Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
                      time.perf_counter() - start, post.iterations, post.converged)
         e.prior_source = post.prior

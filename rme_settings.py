@@ -120,7 +120,7 @@ class Estimate:
     mean: np.ndarray               # (4,)
     std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (vi.noise_from_window)
     cov: np.ndarray                # (4, 4) that covariance
-    prior: np.ndarray              # (4,) the prior mean (network output, or zeros)
+    prior: np.ndarray              # (4,) the prior mean VI started from (network output, zeros, or the broad one)
     observed: np.ndarray           # (4,) bool: the window(s) observed it (std well below the prior's; else the prior)
     seconds: float                 # wall time of network + VI
     iterations: int
@@ -133,5 +133,6 @@ class Estimate:
                                      #   (the compensation no longer explained tau_ext at rest) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied (update only)
-    prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1), or "broad" (every plausible
-                                     #   payload) where the window's evidence says the network's prior conflicts
+    prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
+                                     #   "broad" (every plausible payload): for an absolute window, or where a
+                                     #   referred window's evidence says the network's prior conflicts with it

@@ -183,3 +183,28 @@ def test_the_broad_prior_has_no_evidence_where_its_best_payload_is_outside_its_b
     assert np.isfinite(vi.log_evidence(win, mean, std, box=wide))
     assert vi.log_evidence(win, mean, std, box=tight) == -np.inf
     assert np.isfinite(vi.log_evidence(win, mean, std))
+
+
+def test_a_constant_shared_by_the_joints_is_marginalised_exactly():
+    """precompute with a covariance C (n, n) of a constant shared by the joints: A, b, c and log_norm match the
+    Gaussian of the whole (T n)-sample window, its covariance built and inverted directly."""
+    rng = np.random.default_rng(9)
+    T, n = 12, 7
+    Y, tau = rng.normal(size=(T, n, 4)), rng.normal(size=(T, n))
+    L = rng.normal(size=(n, n)) * 0.3
+    C = L @ L.T + 0.05 * np.eye(n)
+    settings = vi.VISettings()
+    win = vi.precompute(Y, tau, settings=settings, bias_std=C)
+    s, D = vi.noise_from_window(Y, tau, settings, None, np.zeros(n))
+    t = np.linspace(-1, 1, T)
+    B = np.stack([np.ones(T), t, 1.5 * t * t - 0.5], axis=1)
+    S = np.zeros((T * n, T * n))
+    for j in range(n):                                          # rows t * n + j
+        S[j::n, j::n] = s[j] ** 2 * np.eye(T) + B @ np.diag(D[j] ** 2) @ B.T
+    U = np.kron(np.ones((T, 1)), np.eye(n))                    # (T n, n): the shared constant
+    S += U @ C @ U.T
+    Si, Yf, tf = np.linalg.inv(S), Y.reshape(T * n, 4), tau.reshape(-1)
+    np.testing.assert_allclose(win.A, Yf.T @ Si @ Yf, rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(win.b, Yf.T @ Si @ tf, rtol=1e-8, atol=1e-8)
+    assert win.c == pytest.approx(tf @ Si @ tf, rel=1e-8)
+    assert win.log_norm == pytest.approx(0.5 * np.linalg.slogdet(2 * np.pi * S)[1], rel=1e-8)

@@ -188,11 +188,18 @@ def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None, bias_s
       A = sum_j (Y_j^T Y_j - Yb_j^T K_j Yb_j) / s_j^2,  b = sum_j (Y_j^T tau_j - Yb_j^T K_j taub_j) / s_j^2.
     s, D from noise_from_window (bias_std (n,): the constant's std there); noise_std (n,) overrides s, with
     D_j = (bias_std or settings.offset_std, 0, 0).
+    bias_std (n, n): a covariance C of a constant c (n,) shared by the joints (a robot model's error is correlated
+    across them; error_model.ErrorModel.covariance), marginalised too: with u_j = 1^T S_j^-1 1, F_j = 1^T S_j^-1 Y_j
+    and f_j = 1^T S_j^-1 tau_j, Woodbury over c removes F^T W F from A, F^T W f from b, f^T W f from c, with
+    W = (C^-1 + diag(u))^-1, and adds 1/2 log det(I + C diag(u)) to log_norm.
     """
     Y, tau = check_window(Y, tau)
     T, n, _ = Y.shape
     if speed is not None and ((speed := _array("speed", speed, f"({n},)", 1)).shape != (n,) or np.any(speed < 0)):
         raise ValueError(f"speed: expected shape ({n},) with values >= 0, found {speed}")
+    C = None
+    if bias_std is not None and np.ndim(bias_std) == 2:               # a shared constant: the diagonal part is 0
+        C, bias_std = np.asarray(bias_std, dtype=float), np.zeros(n)
     if noise_std is None:
         s, D = noise_from_window(Y, tau, settings, speed, bias_std)
     else:
@@ -210,6 +217,16 @@ def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None, bias_s
     b = Zw.T @ tw - np.einsum("jkp,kj->p", KYb, tb)
     c = float(tw @ tw - np.einsum("kj,jkl,lj->", tb, K, tb))
     log_norm = 0.5 * float(T * np.sum(LOG_2PI + np.log(s**2)) + np.sum(np.linalg.slogdet(M)[1] - 3 * np.log(s**2)))
+    if C is not None:
+        g = (B.T @ B)[0]                                             # 1^T B (3,)
+        gK = np.einsum("k,jkl->jl", g, K)                            # (n, 3): g^T K_j
+        u = T / s**2 - gK @ g                                        # (n,) 1^T S_j^-1 1, S_j^-1 = I / s_j^2 - B K_j B^T
+        F = Yb[:, 0, :] / s[:, None] ** 2 - np.einsum("jl,jlp->jp", gK, Yb)   # (n, 4)
+        f = tb[0] / s**2 - np.einsum("jl,lj->j", gK, tb)             # (n,)
+        Mc = np.linalg.inv(C) + np.diag(u)
+        W = np.linalg.inv(Mc)
+        A, b, c = A - F.T @ W @ F, b - F.T @ W @ f, c - float(f @ W @ f)
+        log_norm += 0.5 * float(np.linalg.slogdet(C)[1] + np.linalg.slogdet(Mc)[1])
     return Window(0.5 * (A + A.T), b, c, log_norm, s, T, D)
 
 

@@ -134,13 +134,20 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     if P < 3:
         notes.append(f"only {P} pose(s): the absolute error's spread over poses is barely measured")
     floor = 0.001                                               # Nm: below the sensor's 0.005 Nm quiescent noise
-    model = ErrorModel(tuple(np.maximum(absolute, floor)), tuple(np.maximum(referred, floor)), tuple(offset),
-                       source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}")
+    absolute = np.maximum(absolute, floor)
+    corr = np.corrcoef((r - offset).T) if W > 2 else np.eye(n)   # the error's correlation across joints, shrunk to
+    lam = n / (n + P)                                            # the identity as few poses back it (n / (n + P))
+    corr = (1 - lam) * np.nan_to_num(corr) + lam * np.eye(n)
+    np.fill_diagonal(corr, 1.0)
+    model = ErrorModel(tuple(absolute), tuple(np.maximum(referred, floor)), tuple(offset),
+                       source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}",
+                       correlation=tuple(map(tuple, corr)))
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
                   load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
-                  referred=list(model.referred), offset=list(model.offset), notes=notes)
+                  referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
+                  shrinkage=lam, notes=notes)
     return model, report
 
 
