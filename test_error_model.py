@@ -208,3 +208,27 @@ def test_a_constant_shared_by_the_joints_is_marginalised_exactly():
     np.testing.assert_allclose(win.b, Yf.T @ Si @ tf, rtol=1e-8, atol=1e-8)
     assert win.c == pytest.approx(tf @ Si @ tf, rel=1e-8)
     assert win.log_norm == pytest.approx(0.5 * np.linalg.slogdet(2 * np.pi * S)[1], rel=1e-8)
+
+
+def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
+    """Two logs of one 0.8 kg load resting at 2 poses each: the pooled least-squares payload is the truth to 2 %, and
+    every method reports its median, spread, and (but least squares) sigma and coverage."""
+    rng = np.random.default_rng(12)
+    theta = np.array([0.8, 0.03, -0.02, 0.1])
+    for k in range(2):
+        poses = [random_pose(ROBOT, rng) for _ in range(2)]
+        q = np.vstack([np.repeat(p[None], 450, axis=0) for p in poses]) + rng.normal(0, 1e-5, (900, 7))
+        tau = ROBOT.payload_regressor(q) @ phi_of(theta) + rng.normal(0, 0.02, (900, 7))
+        write_npz(tmp_path / f"log{k}.npz", dict(t=np.arange(900) * 1e-3, q=q, dq=np.zeros_like(q),
+                                                 tau_J=np.zeros_like(q), tau_ext=tau))
+    out = subprocess.run([sys.executable, os.path.join(HERE, "sim.py"), "real-logs", str(tmp_path), "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout)
+    assert res["logs"] == 2 and res["windows"] >= 8
+    assert res["pooled"][0] == pytest.approx(0.8, rel=0.02)
+    for name in ("RME", "least squares", "range rule"):
+        row = res["absolute"][name]["m"]
+        assert abs(row["median"] - 0.8) < 0.05 and row["spread"] is not None
+        assert (row["sigma"] is None) == (name == "least squares")
+    assert abs(res["referred"]["RME"]["m"]["median"]) < 0.05          # no change between consecutive windows
