@@ -132,4 +132,4 @@ class Estimate:
                                      #   estimate before a change found at rest to be no payload), "monitor"
                                      #   (the compensation no longer explained tau_ext at rest) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
-    reason: str = ""                 # why it was not applied (update only)
+    reason: str = ""                 # why it was not applied, or applied only later (update only)
