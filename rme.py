@@ -275,8 +275,11 @@ class RME(Streaming):
         then(e, Ybar)
 
 
-if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module
+if __name__ == "__main__":          # python rme.py diagnose|plot LOG ...: the script's entry, not part of the module
     from diagnosis.diagnose import main
-    sys.exit(main(sys.argv[2:], prog="rme.py diagnose") if sys.argv[1:2] == ["diagnose"] else print(
-        "usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n(the estimator itself is a "
-        "library: from rme import RME; demos: python sim.py --help)") or 2)
+    from experiments.figures import plot_main
+    sys.exit(main(sys.argv[2:], prog="rme.py diagnose") if sys.argv[1:2] == ["diagnose"] else
+             plot_main(sys.argv[2:]) if sys.argv[1:2] == ["plot"] else print(
+        "usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
+        "       python rme.py plot LOG [--out FILE]   (a franka.py --log run: the estimate over time)\n(the "
+        "estimator itself is a library: from rme import RME; demos: python sim.py --help)") or 2)

@@ -3,6 +3,7 @@ theta_hat with its 2-sigma band against the truth, the end-effector error with a
 explain them. Headless (matplotlib's Agg backend); matplotlib is optional: pyplot() says so when it is missing."""
 from __future__ import annotations
 
+import sys
 import textwrap
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -33,17 +34,17 @@ def pyplot():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        print("no figure: matplotlib is not installed (pip install matplotlib)")
+        print("no figure: matplotlib is not installed (pip install matplotlib)", file=sys.stderr)
         return None
     return plt
 
 
-def save(fig, path):
-    """Write fig to path (the format from its suffix) and close it."""
+def save(fig, path, out=None):
+    """Write fig to path (the format from its suffix), close it, and say so on `out` (default stdout)."""
     fig.savefig(path, dpi=120, bbox_inches="tight")
     import matplotlib.pyplot as plt
     plt.close(fig)
-    print(f"figure written to {path}")
+    print(f"figure written to {path}", file=out or sys.stdout)
 
 
 def applied_steps(t, history):
@@ -96,7 +97,11 @@ def estimate_panels(axes, t, theta_hat, history, truth=None, label="RME", color=
 def held_spans(axes, history, min_wait=0.1):
     """Shade, on every axis, each change whose estimate waited more than min_wait [s] from its time to its
     compensation; return its reasons [(t0, t1, reason)] for the caption."""
-    held = [(e.t, e.applied, e.reason or "(no reason recorded)") for e in history
+    def why(e):
+        took = getattr(e, "seconds", np.nan)
+        return e.reason or (f"the estimate itself took {took:.2f} s (network + VI beside the loop)"
+                            if took >= 0.8 * (e.applied - e.t) else "(no reason recorded)")
+    held = [(e.t, e.applied, why(e)) for e in history
             if e.accepted and np.isfinite(e.applied) and e.applied - e.t > min_wait]
     for k, (t0, t1, _) in enumerate(held):
         for ax in axes:
@@ -166,7 +171,7 @@ def demo_figure(runs: dict, title: str, marks=(), errors: dict | None = None, er
         axes[4].plot(runs[name].t, err, color=COLORS.get(name, "tab:purple"), lw=1, label=f"{name} RME")
     axes[4].set(ylabel=error_label, xlabel="t [s]")
     axes[0].set_xlim(first.t[0], first.t[-1])
-    held = held_spans(axes, first.history)
+    held = held_spans(axes, [e for name in rme for e in runs[name].history])
     event_marks(axes, marks)
     for ax in axes[:4]:
         ax.tick_params(labelbottom=False)
@@ -204,15 +209,16 @@ def cycle_panel(runs: dict, cycle, since: float):
 # --- a franka.py log ------------------------------------------------------------------------------------------
 def history_of(log) -> list:
     """The estimates a franka.py log holds (est_* arrays, see franka.save_log) as objects with t, applied, mean, std,
-    observed, kind, accepted, reason (std NaN, observed all True, accepted True, reason "" where the log lacks them)."""
+    observed, kind, accepted, reason, seconds (NaN, all True, True, "", NaN where the log lacks them)."""
     t = np.asarray(log.get("est_t", []), float)
     k = len(t)
     get = lambda key, default: np.asarray(log[key]) if key in log else default
     std, obs = get("est_std", np.full((k, 4), np.nan)), get("est_observed", np.ones((k, 4), dtype=bool))
     acc, why = get("est_accepted", np.ones(k, dtype=bool)), get("est_reason", np.full(k, ""))
+    took = get("est_seconds", np.full(k, np.nan))
     return [SimpleNamespace(t=float(t[i]), applied=float(log["est_applied"][i]), mean=np.asarray(log["est_theta"][i]),
                             std=std[i], observed=obs[i].astype(bool), kind=str(log["est_kind"][i]),
-                            accepted=bool(acc[i]), reason=str(why[i])) for i in range(k)]
+                            accepted=bool(acc[i]), reason=str(why[i]), seconds=float(took[i])) for i in range(k)]
 
 
 def log_figure(log, robot=None, title="franka.py run"):
@@ -239,20 +245,28 @@ def log_figure(log, robot=None, title="franka.py run"):
     return fig
 
 
-def plot_log(path_in: str, path_out: str) -> int:
-    """`python rme.py plot LOG [--out FILE]`: the figure of a franka.py --log .npz; returns the exit status."""
+def plot_main(argv) -> int:
+    """`python rme.py plot LOG [--out FILE]`: the figure of a franka.py --log .npz (default FILE: LOG with .png);
+    returns the exit status."""
+    import argparse
+    ap = argparse.ArgumentParser(prog="rme.py plot", description="the figure of a franka.py --log run: the estimate "
+                                 "over time with its 2-sigma band, the estimates, how far the hand moved")
+    ap.add_argument("log", metavar="LOG", help="the .npz franka.py --log wrote")
+    ap.add_argument("--out", metavar="FILE", help="the figure (default: LOG with .png)")
+    args = ap.parse_args(argv)
+    out = args.out or (args.log[:-4] if args.log.endswith(".npz") else args.log) + ".png"
     try:
-        with np.load(path_in) as z:
+        with np.load(args.log) as z:
             log = {k: z[k] for k in z.files}
     except (OSError, ValueError) as err:
-        print(f"rme.py plot: cannot read {path_in}: {err}")
+        print(f"rme.py plot: cannot read {args.log}: {err}", file=sys.stderr)
         return 2
     missing = [k for k in ("t", "q", "theta_hat", "est_t", "est_applied", "est_theta", "est_kind") if k not in log]
     if missing:
-        print(f"rme.py plot: {path_in} is not a franka.py --log file (missing {', '.join(missing)})")
+        print(f"rme.py plot: {args.log} is not a franka.py --log file (it lacks {', '.join(missing)})", file=sys.stderr)
         return 2
-    fig = log_figure(log, title=f"franka.py run: {path_in}")
+    fig = log_figure(log, title=f"franka.py run: {args.log}")
     if fig is None:
         return 1
-    save(fig, path_out)
+    save(fig, out)
     return 0
