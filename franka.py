@@ -373,16 +373,13 @@ def main(argv=None) -> int:
             worker.shutdown()
     summary["estimate_in"] = "callback" if args.sync_estimate else args.worker
     if args.sim and args.sim_payload > 0:              # what the estimates are to be compared with
-        t_load = args.seconds / 2
-        summary["sim_payload"] = {"t": t_load, "mass": args.sim_payload, "com": list(SIM_COM)}
-        log["theta"] = np.where((log["t"] >= t_load - 1e-9)[:, None], [args.sim_payload, *SIM_COM], 0.0)
+        summary["sim_payload"] = p = {"t": args.seconds / 2, "mass": args.sim_payload, "com": list(SIM_COM)}
+        log["theta"] = np.where((log["t"] >= p["t"] - 1e-9)[:, None], [p["mass"], *SIM_COM], 0.0)
     if args.log:
         save_log(args.log, log, estimator)
     if args.plot:
-        from experiments.figures import log_figure, save
-        fig = log_figure(dict(log, **_estimates(estimator)), robot, title="franka.py run" + " (--sim)" * args.sim)
-        if fig is not None:
-            save(fig, args.plot, sys.stderr if args.json else None)
+        from experiments.figures import plot_run
+        plot_run(args.plot, log, estimator.history, robot, "franka.py run" + " (--sim)" * args.sim, args.json)
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
@@ -390,13 +387,12 @@ def main(argv=None) -> int:
         print(f"{summary['cycles']} cycles, {summary['seconds']:.3f} s, stopped: {summary['stopped']}; callback "
               f"median/p99/max {'/'.join(f'{cb[k]:.2f}' for k in ('median', 'p99', 'max'))} ms")
         for e in summary["estimates"]:
-            state = f"applied at {e['applied']:.3f} s" if e["accepted"] else "refused"
+            state = (f"applied at {e['applied']:.3f} s" if e["accepted"] else "refused") + (
+                f" ({e['reason']})" if e["reason"] else "")
             blind = "" if e["rz_observed"] or e["kind"] == "withdrawn" else " (rz: prior, not observed at this pose)"
-            print(f"  {e['t']:7.3f} s  {e['kind']}: m = {e['mass']:.3f} kg, r = {e['com']} m{blind}, {state}"
-                  + (f" ({e['reason']})" if e["reason"] else ""))
+            print(f"  {e['t']:7.3f} s  {e['kind']}: m = {e['mass']:.3f} kg, r = {e['com']} m{blind}, {state}")
         if "sim_payload" in summary:
-            p = summary["sim_payload"]
-            print(f"  simulated payload: m = {p['mass']} kg, r = {p['com']} m from {p['t']:.3f} s")
+            print("  simulated payload: m = {mass} kg, r = {com} m from {t:.3f} s".format(**summary["sim_payload"]))
     return 0
 
 

@@ -221,16 +221,16 @@ def history_of(log) -> list:
                             accepted=bool(acc[i]), reason=str(why[i]), seconds=float(took[i])) for i in range(k)]
 
 
-def log_figure(log, robot=None, title="franka.py run"):
+def log_figure(log, robot=None, title="franka.py run", history=None):
     """A franka.py log ({key: array}, as save_log writes it): m, rx, ry, rz compensated with their 2-sigma band (and
-    the simulated truth `theta` if the log has it), the estimates as markers, and how far the end effector moved
-    from its first pose [mm]. Returns the Figure (None without matplotlib)."""
+    the simulated truth `theta` if the log has it), the estimates (`history`, else the log's est_*) as markers, and
+    how far the end effector moved from its first pose [mm]. Returns the Figure (None without matplotlib)."""
     plt = pyplot()
     if plt is None:
         return None
     from dynamics import Robot
     robot = robot or Robot.panda()
-    t, hist = np.asarray(log["t"], float), history_of(log)
+    t, hist = np.asarray(log["t"], float), history_of(log) if history is None else history
     fig, axes = plt.subplots(5, 1, figsize=(10, 9), sharex=True, gridspec_kw=dict(hspace=0.12))
     truth = np.asarray(log["theta"], float) if "theta" in log else None
     estimate_panels(axes[:4], t, np.asarray(log["theta_hat"], float), hist, truth)
@@ -243,6 +243,13 @@ def log_figure(log, robot=None, title="franka.py run"):
     fig.suptitle(title)
     _caption(fig, held)
     return fig
+
+
+def plot_run(path, log, history, robot, title, quiet=False):
+    """franka.py --plot: log_figure of the run just made, written to path (said on stderr if quiet: --json)."""
+    fig = log_figure(log, robot, title, history)
+    if fig is not None:
+        save(fig, path, sys.stderr if quiet else None)
 
 
 def plot_main(argv) -> int:
