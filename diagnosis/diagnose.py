@@ -337,32 +337,61 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
 
 
 def plot(path, out: dict):
-    """Residual of the starting model over time per joint (left), and on the right the residual left for the top
-    effect (every other selected effect removed) against the signal that effect depends on, with its fitted torque."""
+    """The error falling, per joint: on the left the residual tau_J - model over time before and after each added
+    effect (in the order added, fitted on the whole log); on the right the residual left for the top effect against
+    the signal it depends on, with its fitted torque; below, per-joint RMS before and after each. Legends outside."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    log, r = out["log"], out["before"].residual
-    n = r.shape[1]
-    fig, ax = plt.subplots(n, 2, figsize=(11, 1.6 * n), squeeze=False)
-    top = _top_effect(out)
-    step = max(1, len(r) // 4000)
+    log, stages = out["log"], _stages(out)
+    n = stages[0][1].shape[1]
+    fig = plt.figure(figsize=(11, 1.6 * n + 2.6))
+    grid = fig.add_gridspec(n + 2, 2, height_ratios=[1] * n + [0.5, 1.8], hspace=0.35)   # a gap, then the RMS
+    top, step = _top_effect(out), max(1, len(log.t) // 4000)
     for j in range(n):
-        ax[j, 0].plot(log.t, r[:, j], lw=0.6)
-        ax[j, 0].set_ylabel(f"J{j + 1} [Nm]")
+        ax = fig.add_subplot(grid[j, 0])
+        for k, (name, r) in enumerate(stages):
+            ax.plot(log.t[::step], r[::step, j], lw=0.6, color=f"C{k}", label=name)
+        ax.set_ylabel(f"J{j + 1} [Nm]")
         if top is not None:
+            side = fig.add_subplot(grid[j, 1])
             x = top["x"][::step, j]
-            ax[j, 1].plot(x, top["residual"][::step, j], ".", ms=1, label="residual")
-            ax[j, 1].plot(x, top["fitted"][::step, j], ".", ms=1, label=f"fitted {top['name']}")
-    ax[0, 0].set_title("residual tau_J - model over time")
-    ax[-1, 0].set_xlabel("t [s]")
+            side.plot(x, top["residual"][::step, j], ".", ms=1, color="0.5", label="residual without it")
+            side.plot(x, top["fitted"][::step, j], ".", ms=1, color="C3", label=f"fitted {top['name']}")
+            if j == 0:
+                side.set_title(f"residual left for '{top['name']}' vs what it depends on", fontsize=9)
+                side.legend(loc="lower left", bbox_to_anchor=(0, 1.25), ncol=2, markerscale=8, fontsize=7)
+        if j == 0:
+            ax.set_title("residual tau_J - model over time", fontsize=9)
+            ax.legend(loc="lower left", bbox_to_anchor=(0, 1.25), ncol=len(stages), fontsize=7)
+    ax.set_xlabel("t [s]")
     if top is not None:
-        ax[0, 1].set_title(f"residual left for '{top['name']}' vs what it depends on")
-        ax[-1, 1].set_xlabel(top["xlabel"])
-        ax[0, 1].legend(loc="upper right", markerscale=8, fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+        side.set_xlabel(top["xlabel"])
+    bars = fig.add_subplot(grid[n + 1, :])
+    width = 0.8 / len(stages)
+    for k, (name, r) in enumerate(stages):
+        bars.bar(np.arange(n) + (k - (len(stages) - 1) / 2) * width, np.sqrt(np.mean(r ** 2, axis=0)), width,
+                 color=f"C{k}", label=name)
+    bars.set(xticks=range(n), xticklabels=[f"J{j + 1}" for j in range(n)], ylabel="RMS [Nm]",
+             title="per-joint RMS of the residual")
+    bars.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=7, frameon=False)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
+    return fig
+
+
+def _stages(out: dict) -> list:
+    """[(label, residual (T, n))]: the starting model's, then with each added effect, in the order added (the
+    parameters of the fit with all of them, so the last is exactly the residual after)."""
+    stages = [(" + ".join(out["model"].names), out["before"].residual)]
+    if "added" not in out:
+        return stages
+    added, s = out["added"], out["added"].signals(out["log"])
+    new = added.effects[len(out["model"].effects):]
+    after = added.residual(s)
+    for k, e in enumerate(new):
+        stages.append(("+ " + e.name, after + added.torque(s, new[k + 1:])))
+    return stages
 
 
 def _top_effect(out: dict):

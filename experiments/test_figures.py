@@ -120,3 +120,15 @@ def test_a_saved_franka_log_keeps_what_the_figure_needs(tmp_path):
     for a, b in zip(hist, back):
         assert (a.t, a.kind, a.accepted, a.reason) == (b.t, b.kind, b.accepted, b.reason)
         assert np.allclose(a.std, b.std) and np.array_equal(a.observed, b.observed) and np.allclose(a.mean, b.mean)
+
+
+def test_without_matplotlib_a_plot_is_one_line_not_a_traceback(monkeypatch, capsys):
+    import importlib.util
+    import sys
+    from experiments import cli, figures
+    monkeypatch.setitem(sys.modules, "matplotlib", None)         # import matplotlib now raises ImportError
+    assert figures.pyplot() is None
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "matplotlib" else True)
+    assert cli.main(["basket", "--plot", "x.png"]) == 2           # said before any simulation runs
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("matplotlib" in line for line in err) and "Traceback" not in "".join(err)
