@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import json
-import sys
 
 # name: (help, "module:function", flags). The module is imported only when its demo runs.
 DEMOS = {
@@ -76,9 +74,11 @@ def main(argv=None) -> int:
         argv = ["static"] + argv                       # the main demo is the default
     p = parser()
     args = p.parse_args(argv)
-    if getattr(args, "plot", None) and importlib.util.find_spec("matplotlib") is None:
-        print("sim.py: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
-        return 2
+    if getattr(args, "plot", None):
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:                        # one line, no usage: the command itself was right
+            p.exit(2, "sim.py: --plot needs matplotlib, which is not installed (pip install matplotlib)\n")
     module, function = DEMOS[args.demo][1].split(":")
     getattr(importlib.import_module(module), function)(args)
     return 0
