@@ -274,14 +274,24 @@ def fit_friction_model(config, seconds=12.0, seed=0):
     return model
 
 
-def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1.4):
-    """First RME estimate after attaching theta during a CPIC hold at the ready pose on the plant `config`."""
+def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1.4, why=False):
+    """First RME estimate after attaching theta during a CPIC hold at the ready pose on the plant `config` (None if
+    there is none); with why: (that estimate or None, why there is none or "")."""
     plant = Plant(config, rng=np.random.default_rng(seed))
     robot = plant.robot
     ctrl = CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
     est = RME(robot, rng=np.random.default_rng(seed + 1), correction=correction)
     run_loop(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_attach, theta[0], theta[1:])], q0=Q_READY)
-    return est.history[0] if est.history else None
+    first = est.history[0] if est.history else None
+    if not why:
+        return first
+    s, left = est.settings, seconds - t_attach
+    reason = "" if first is not None else (
+        f"held as a possible press on the hand (its force's line passes through the flange); it waits hold_axial = "
+        f"{s.hold_axial:g} s, the run ends {left:g} s after the load" if est.changes_held else
+        "detected, but the change did not look like a payload" if est.changes_not_payload else
+        f"no detection in the {left:g} s after the load")
+    return first, reason
 
 
 def better_model(args):
@@ -296,10 +306,11 @@ def better_model(args):
     print("\n  payload (m, rx, ry, rz)          RME error (m [kg], rx, ry, rz [m])")
     rows = []
     for i, theta in enumerate([(0.3, 0.03, 0.0, 0.13), (0.9, 0.05, -0.03, 0.13), (1.29, 0.05, 0.01, 0.13)]):
-        errs = [hold_estimate(config, np.array(theta), seed=args.seed + 10 * i, correction=c) for c in (None, model)]
-        errs = [None if e is None else e.mean - np.array(theta) for e in errs]
+        found = [hold_estimate(config, np.array(theta), seed=args.seed + 10 * i, correction=c, why=True)
+                 for c in (None, model)]
+        errs = [None if e is None else e.mean - np.array(theta) for e, _ in found]
         rows.append(errs)
-        for label, e in zip(("nominal model", "with friction"), errs):
-            txt = "not detected" if e is None else "  ".join(f"{v:+.4f}" for v in e)
+        for label, e, (_, why) in zip(("nominal model", "with friction"), errs, found):
+            txt = f"no estimate: {why}" if e is None else "  ".join(f"{v:+.4f}" for v in e)
             print(f"  {str(theta):32s} {label:14s} {txt}")
     return rows
