@@ -52,3 +52,14 @@ def test_franka_help_is_whole_and_names_no_internal_constant(capsys):
         franka.main(["--help"])
     out = capsys.readouterr().out
     assert "SIM_COM" not in out and "(--sim)." in " ".join(out.split())   # the description's whole first sentence
+
+
+def test_network_bench_labels_the_weights_files_training_time_as_recorded_not_measured(capsys):
+    from experiments.training import print_benchmark
+    r = {"forward_median_us": 143.44, "features_median_us": 414.3, "train_step_median_us": 91000.0,
+         "train_samples_per_s": 351.6, "training_seconds": 135.32005159100027, "data_seconds": 32.17, "iterations": 7756,
+         "epochs": 554, "val_mse": [0.0019, 0.00078, 0.00043, 0.0021]}
+    print_benchmark(r, "weights.npz")
+    out = capsys.readouterr().out
+    assert "135.32005" not in out and "recorded in weights.npz by the run that trained it (not measured now)" in out
+    assert "measured in this run" in out and "median [us]" in out
