@@ -131,3 +131,23 @@ def test_without_matplotlib_a_plot_is_one_line_not_a_traceback(monkeypatch, caps
         cli.main(["basket", "--plot", "x.png"])
     err = capsys.readouterr().err.strip().splitlines()
     assert stop.value.code == 2 and len(err) == 2 and all("matplotlib" in line for line in err)
+
+
+@pytest.mark.parametrize("demo, axes, marks, error_label", [
+    ("static_hold", 5, {"payload attached: 0.9 kg"}, "|p - p*| [mm]"),
+    ("basket", 5, {"basket attached", "object 1 added", "push"}, "|p - p*| [mm]"),
+    ("limit_cycle", 6, {"payload attached: 2.0 kg"}, "distance to the cycle [mm]"),
+    ("pick_place", 5, {"grasp: 0.7 kg", "+0.5 kg", "release"}, "|p - p unloaded| [mm]")])
+def test_each_demo_draws_its_figure(demo, axes, marks, error_label, monkeypatch, capsys):
+    """The demos' wiring, with the closed loop replaced by synthetic Records (no simulation)."""
+    from experiments import scenarios
+    drawn = []
+    monkeypatch.setattr(scenarios, "run", lambda args, seconds, loads, *a, use_rme=True, **k: record(
+        [estimate(1.2, 1.21, [0.9, 0.05, -0.03, 0.1])] if use_rme else [], seconds))
+    monkeypatch.setattr(scenarios, "save", lambda fig, path: drawn.append(fig))
+    getattr(scenarios, demo)(scenarios.Args(preset="ideal", plot="figure.png"))
+    fig, = drawn
+    assert len(fig.axes) == axes
+    assert marks <= {t.get_text() for t in fig.axes[0].texts}
+    assert fig.axes[4].get_ylabel() == error_label
+    assert {"without RME", "with RME"} <= labels(fig.axes[4])
