@@ -279,10 +279,10 @@ def summarize(log, estimator, robot, limit, missed, held, stopped, seconds, faul
     return {"seconds": float(log["t"][-1]) if len(log["t"]) else 0.0, "requested_seconds": seconds,
             "cycles": int(len(log["t"])), "stopped": stopped, "missed_cycles": int(missed), "nan_held": int(held),
             "faulty_tau_ext": int(faulty),
-            "estimates": [{"t": round(float(e.t), 4), "applied": round(float(e.applied), 4) if np.isfinite(e.applied) else None,
-                           "mass": round(float(e.mean[0]), 4), "com": np.round(e.mean[1:], 4).tolist(),
-                           "kind": e.kind, "accepted": bool(e.accepted), "seconds": round(float(e.seconds), 4),
-                           "rz_observed": bool(e.observed[3]), "reason": e.reason}
+            "estimates": [{"t": round(float(e.t), 4), "mass": round(float(e.mean[0]), 4),
+                           "applied": round(float(e.applied), 4) if np.isfinite(e.applied) else None,
+                           "com": np.round(e.mean[1:], 4).tolist(), "kind": e.kind, "accepted": bool(e.accepted),
+                           "seconds": round(float(e.seconds), 4), "rz_observed": bool(e.observed[3]), "reason": e.reason}
                           for e in getattr(estimator, "history", [])],
             "theta_hat": np.round(getattr(estimator, "theta", np.zeros(4)), 4).tolist(),
             "max_abs_tau": peak(sent), "tau_limit": limit.tolist(), "max_abs_dtau": peak(dtau),

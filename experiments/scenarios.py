@@ -72,9 +72,9 @@ def print_estimates(log, label="RME"):
                 "monitor": "estimates again, arm at rest: the compensation no longer explained tau_ext",
                 "accumulated": "combines the windows seen at two orientations",
                 "withdrawn": "withdraws its estimate"}.get(e.kind, "estimates again, the arm did not come to rest")
-        blind = e.kind != "withdrawn" and not e.observed[3]
+        blind = " (rz: prior, not observed at this pose)" if e.kind != "withdrawn" and not e.observed[3] else ""
         print(f"  {e.t:6.3f} s  {label} {what} [{e.kind}]; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
-              f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m{' (rz: prior, not observed at this pose)' if blind else ''}"
+              f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m{blind}"
               f"  [truth m = {theta[k, 0]:.3f}, r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  "
               f"{e.seconds * 1e3:.1f} ms, {when}")
 
