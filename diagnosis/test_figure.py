@@ -5,7 +5,8 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from diagnosis.diagnose import plot, run  # noqa: E402
+from diagnosis.diagnose import run  # noqa: E402
+from diagnosis.figure import plot  # noqa: E402
 from diagnosis.effects import Signals, _sigmoid_shape  # noqa: E402
 from diagnosis.excite import ExciteConfig, multisine  # noqa: E402
 from diagnosis.logs import Log, prepare  # noqa: E402
