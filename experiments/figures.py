@@ -94,14 +94,14 @@ def estimate_panels(axes, t, theta_hat, history, truth=None, label="RME", color=
                      label="compensation applied")
 
 
-def held_spans(axes, history, min_wait=0.1):
+def held_spans(axes, history, min_wait=0.1, who=""):
     """Shade, on every axis, each change whose estimate waited more than min_wait [s] from its time to its
-    compensation; return its reasons [(t0, t1, reason)] for the caption."""
+    compensation; return its reasons [(t0, t1, reason)] for the caption (prefixed by `who`: the run)."""
     def why(e):
         took = getattr(e, "seconds", np.nan)
         return e.reason or (f"the estimate itself took {took:.2f} s (network + VI beside the loop)"
                             if took >= 0.8 * (e.applied - e.t) else "(no reason recorded)")
-    held = [(e.t, e.applied, why(e)) for e in history
+    held = [(e.t, e.applied, who + why(e)) for e in history
             if e.accepted and np.isfinite(e.applied) and e.applied - e.t > min_wait]
     for k, (t0, t1, _) in enumerate(held):
         for ax in axes:
@@ -171,7 +171,7 @@ def demo_figure(runs: dict, title: str, marks=(), errors: dict | None = None, er
         axes[4].plot(runs[name].t, err, color=COLORS.get(name, "tab:purple"), lw=1, label=f"{name} RME")
     axes[4].set(ylabel=error_label, xlabel="t [s]")
     axes[0].set_xlim(first.t[0], first.t[-1])
-    held = held_spans(axes, [e for name in rme for e in runs[name].history])
+    held = [h for name in rme for h in held_spans(axes, runs[name].history, who=f"{name} RME: " * (len(rme) > 1))]
     event_marks(axes, marks)
     for ax in axes[:4]:
         ax.tick_params(labelbottom=False)
