@@ -63,3 +63,14 @@ def test_network_bench_labels_the_weights_files_training_time_as_recorded_not_me
     out = capsys.readouterr().out
     assert "135.32005" not in out and "recorded in weights.npz by the run that trained it (not measured now)" in out
     assert "measured in this run" in out and "median [us]" in out
+
+
+def test_a_load_held_as_a_possible_press_says_why_it_was_applied_late():
+    """A load centred below the flange looks like a hand pressing on it: RME holds it hold_axial (2.5 s), then
+    applies it, and the estimate says why; a load off that line is applied at once with no reason (seeded
+    plants)."""
+    from experiments import scenarios
+    for seed, r, held in ((3, (0.0, 0.0, 0.12), True), (4, (0.05, -0.03, 0.12), False)):
+        rec = scenarios.run(scenarios.Args(seed=seed), 3.7, [(1.0, np.array([0.45, *r]), None)])
+        first = next(e for e in rec.history if e.accepted)
+        assert (first.applied - 1.0 > 2.0) == held and ("hold_axial = 2.5 s" in first.reason) == held
