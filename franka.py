@@ -280,24 +280,36 @@ def summarize(log, estimator, robot, limit, missed, held, stopped, seconds, faul
     return {"seconds": float(log["t"][-1]) if len(log["t"]) else 0.0, "requested_seconds": seconds,
             "cycles": int(len(log["t"])), "stopped": stopped, "missed_cycles": int(missed), "nan_held": int(held),
             "faulty_tau_ext": int(faulty),
-            "estimates": [{"t": round(float(e.t), 4), "applied": round(float(e.applied), 4),
-                           "mass": round(float(e.mean[0]), 4), "com": np.round(e.mean[1:], 4).tolist(),
-                           "kind": e.kind, "accepted": bool(e.accepted), "seconds": round(float(e.seconds), 4)}
+            "estimates": [{"t": round(float(e.t), 4), "mass": round(float(e.mean[0]), 4),
+                           "applied": round(float(e.applied), 4) if np.isfinite(e.applied) else None,
+                           "com": np.round(e.mean[1:], 4).tolist(), "kind": e.kind, "accepted": bool(e.accepted),
+                           "seconds": round(float(e.seconds), 4), "rz_observed": bool(e.observed[3]), "reason": e.reason}
                           for e in getattr(estimator, "history", [])],
             "theta_hat": np.round(getattr(estimator, "theta", np.zeros(4)), 4).tolist(),
             "max_abs_tau": peak(sent), "tau_limit": limit.tolist(), "max_abs_dtau": peak(dtau),
+            "dtau_limit": SafetyConfig.max_step,     # Nm per 1 ms cycle, the rate limit Safety enforces
             "callback_ms": stats(cb), "callback_ms_estimate_in_flight": stats(cb[flight | np.roll(flight, 1)])}
 
 
 def save_log(path, log, estimator=None):
     """An .npz diagnosis.logs.load_log reads: t, q, dq, tau_J, tau_ext (paper sign, tau_ext_sign='paper'), plus
     tau (the controller's torque, gravity included), tau_cmd (sent, gravity-free), theta_hat (T, 4), callback_s, and
-    the estimates: est_t, est_applied (K,), est_theta (K, 4), est_kind (K,)."""
+    the estimates: est_t, est_applied (K,), est_theta, est_std (K, 4), est_observed (K, 4) bool, est_kind,
+    est_accepted, est_reason, est_seconds (K,). `python rme.py plot` draws it."""
+    np.savez(path, **log, tau_ext_sign="paper", **_estimates(estimator))
+
+
+def _estimates(estimator) -> dict:
+    """The estimator's history as save_log's est_* arrays."""
     hist = list(getattr(estimator, "history", []))
-    np.savez(path, **log, tau_ext_sign="paper", est_t=np.array([e.t for e in hist], float),
-             est_applied=np.array([e.applied for e in hist], float),
-             est_theta=np.array([e.mean for e in hist], float).reshape(-1, 4),
-             est_kind=np.array([e.kind for e in hist], dtype=str))
+    return dict(est_t=np.array([e.t for e in hist], float), est_applied=np.array([e.applied for e in hist], float),
+                est_theta=np.array([e.mean for e in hist], float).reshape(-1, 4),
+                est_std=np.array([e.std for e in hist], float).reshape(-1, 4),
+                est_observed=np.array([e.observed for e in hist], bool).reshape(-1, 4),
+                est_kind=np.array([e.kind for e in hist], dtype=str),
+                est_accepted=np.array([e.accepted for e in hist], bool),
+                est_reason=np.array([e.reason for e in hist], dtype=str),
+                est_seconds=np.array([e.seconds for e in hist], float))
 
 
 # --- command line ------------------------------------------------------------------------------------------------
@@ -311,16 +323,18 @@ def make_backend(args, rng: np.random.Generator):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--robot-ip", help="the robot's FCI address (not needed with --sim)")
     ap.add_argument("--lib", choices=LIBS, default="pylibfranka")
     ap.add_argument("--task", choices=TASKS, default="hold")
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--log", help="write the run to this .npz (diagnosis.logs.load_log reads it)")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ap.add_argument("--plot", metavar="FILE", help="save a figure of the run: the estimate over time (needs matplotlib)")
     ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
     ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
-    ap.add_argument("--sim-payload", type=float, default=0.0, help="kg added at half time with --sim (CoM: SIM_COM)")
+    ap.add_argument("--sim-payload", type=float, default=0.0, help="with --sim: kg added at half time, its CoM at "
+                    f"{SIM_COM} m in the ee frame (off the flange's axis)")
     ap.add_argument("--stiffness-scale", type=float, default=1.0, help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
     ap.add_argument("--seed", type=int, default=0, help="the --sim plant's noise")
@@ -366,15 +380,27 @@ def main(argv=None) -> int:
         if worker is not None:
             worker.shutdown()
     summary["estimate_in"] = "callback" if args.sync_estimate else args.worker
+    if args.sim and args.sim_payload > 0:              # what the estimates are to be compared with
+        summary["sim_payload"] = p = {"t": args.seconds / 2, "mass": args.sim_payload, "com": list(SIM_COM)}
+        log["theta"] = np.where((log["t"] >= p["t"] - 1e-9)[:, None], [p["mass"], *SIM_COM], 0.0)
     if args.log:
         save_log(args.log, log, estimator)
+    if args.plot:
+        from experiments.figures import plot_run
+        plot_run(args.plot, log, estimator.history, robot, "franka.py run" + " (--sim)" * args.sim, args.json)
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
         cb = summary["callback_ms"]
-        print(f"{summary['cycles']} cycles, {summary['seconds']:.3f} s, stopped: {summary['stopped']}; estimates: "
-              f"{[(e['t'], e['mass']) for e in summary['estimates']]}; callback median/p99/max "
-              f"{'/'.join(f'{cb[k]:.2f}' for k in ('median', 'p99', 'max'))} ms")
+        print(f"{summary['cycles']} cycles, {summary['seconds']:.3f} s, stopped: {summary['stopped']}; callback "
+              f"median/p99/max {'/'.join(f'{cb[k]:.2f}' for k in ('median', 'p99', 'max'))} ms")
+        for e in summary["estimates"]:
+            state = (f"applied at {e['applied']:.3f} s" if e["accepted"] else "refused") + (
+                f" ({e['reason']})" if e["reason"] else "")
+            blind = "" if e["rz_observed"] or e["kind"] == "withdrawn" else " (rz: prior, not observed at this pose)"
+            print(f"  {e['t']:7.3f} s  {e['kind']}: m = {e['mass']:.3f} kg, r = {e['com']} m{blind}, {state}")
+        if "sim_payload" in summary:
+            print("  simulated payload: m = {mass} kg, r = {com} m from {t:.3f} s".format(**summary["sim_payload"]))
     return 0
 
 

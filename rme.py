@@ -313,12 +313,14 @@ class RME(Streaming):
         then(e, Ybar)
 
 
-if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module
+if __name__ == "__main__":          # python rme.py diagnose|plot LOG ...: the script's entry, not part of the module
     from diagnosis.diagnose import main
     from diagnosis.calibrate import main as calibrate
-    commands = {"diagnose": main, "calibrate": calibrate}
+    from experiments.figures import plot_main
+    commands = {"diagnose": main, "calibrate": calibrate, "plot": lambda argv, prog: plot_main(argv)}
     sys.exit(commands[sys.argv[1]](sys.argv[2:], prog=f"rme.py {sys.argv[1]}") if sys.argv[1:2] and sys.argv[1] in
              commands else print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
                                  "       python rme.py calibrate LOG [LOG ...] [--load none|fit] [--save FILE] [--json]\n"
+                                 "       python rme.py plot LOG [--out FILE]   (a franka.py --log run over time)\n"
                                  "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)",
                                  file=sys.stderr) or 2)

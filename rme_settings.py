@@ -132,7 +132,7 @@ class Estimate:
                                      #   estimate before a change found at rest to be no payload), "monitor"
                                      #   (the compensation no longer explained tau_ext at rest) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
-    reason: str = ""                 # why it was not applied (update only)
+    reason: str = ""                 # why it was not applied, or applied only later (update only)
     prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
                                      #   "broad" (every plausible payload): for an absolute window, or where a
                                      #   referred window's evidence says the network's prior conflicts with it

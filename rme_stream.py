@@ -102,12 +102,20 @@ class Streaming:
                     self._on_line(level - r["bias"], (Y, J), s.axial_radius[1]):
                 return                                                 # (the monitor stays off meanwhile)
         self._refine, self._held = None, None
+        why = "" if not r.get("held") else "held as a possible press on the hand (a downward force through the " \
+            "flange, as a load centred below it gives) until " + (
+                f"it lasted hold_axial = {s.hold_axial:g} s" if self._k - r["since"] >= s.hold_axial * s.rate else
+                "the task announced a change" if self._k < self._expected else
+                f"its line passed more than {1e3 * s.axial_radius[1]:g} mm from the flange")
         if r.get("held") and not rest:                                 # lasted while the arm moves: the detection's
             if self._moved_on(r, q, level):                            #   window, then again at rest; unless a
                 self._refine = self._resumed(r)                        #   push or another change came since: what
                 return                                                 #   the window held is gone
-            again = lambda e, Y: e.accepted and s.refine and setattr(self, "_refine", dict(
-                r, held=False, deadline=self._k + int(s.refine_within * s.rate)))
+            def again(e, Y):
+                if e.accepted:
+                    e.reason = why                                     # why it is applied only now
+                if e.accepted and s.refine:
+                    self._refine = dict(r, held=False, deadline=self._k + int(s.refine_within * s.rate))
             return self._change(*r["window"], r["bias"], r["before"], "detection", again, level=r["known"],
                                 asked=r["asked"])             # its time (Estimate.t): the end of that window
         level = self.detector.recent_mean(s.window)
@@ -120,8 +128,12 @@ class Streaming:
             return                                                     # arm is given; not if the load has gone (the
                                                                        # reference held a push): the monitor's then
         Q, TAU, _ = self._buffer()
-        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", self._withdraw(r["before"]),
-                     level=r["known"])
+        withdraw = self._withdraw(r["before"])
+        def then(e, Y):
+            if e.accepted and why:
+                e.reason = why                                         # why it is applied only now
+            withdraw(e, Y)
+        self._change(Q[-s.window:], TAU[-s.window:], r["bias"], r["before"], "at rest", then, level=r["known"])
 
     def _moved_on(self, r, q, level) -> bool:
         """Whether the residual `level` (n,) at pose q is no longer the held change r's: farther than monitor_far, or a

@@ -14,6 +14,7 @@ import numpy as np
 from dynamics import Robot
 from diagnosis.effect_model import Model
 from diagnosis.effects import EffectConfig
+from diagnosis.figure import plot  # noqa: F401  (diagnose's figure; demos import it from here)
 from diagnosis.findings import collect, format_findings
 from diagnosis.heldout import Selection, blocks_of, rank
 from diagnosis.logs import Log, LogConfig, load_log
@@ -257,7 +258,8 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     p.add_argument("--add", nargs="+", default=[], metavar="EFFECT", choices=names + ["pose_bias", "auto"],
                    help=f"effects to add and fit ('auto': the ones diagnose selects); one of {', '.join(names)}")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
-    p.add_argument("--plot", metavar="FILE", help="save residual-over-time and residual-vs-signal plots (matplotlib)")
+    p.add_argument("--plot", metavar="FILE",
+                   help="save the residual before and after each added effect and the per-joint RMS (matplotlib)")
     p.add_argument("--model", default="nominal", choices=("nominal", "static"),
                    help="starting model: nominal = gravity + motion (Eq. 1); static = gravity only (RME's)")
     p.add_argument("--drop-nan", action="store_true", help="drop rows with NaN/inf (their count is reported)")
@@ -334,55 +336,6 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)
     return out
-
-
-def plot(path, out: dict):
-    """Residual of the starting model over time per joint (left), and on the right the residual left for the top
-    effect (every other selected effect removed) against the signal that effect depends on, with its fitted torque."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    log, r = out["log"], out["before"].residual
-    n = r.shape[1]
-    fig, ax = plt.subplots(n, 2, figsize=(11, 1.6 * n), squeeze=False)
-    top = _top_effect(out)
-    step = max(1, len(r) // 4000)
-    for j in range(n):
-        ax[j, 0].plot(log.t, r[:, j], lw=0.6)
-        ax[j, 0].set_ylabel(f"J{j + 1} [Nm]")
-        if top is not None:
-            x = top["x"][::step, j]
-            ax[j, 1].plot(x, top["residual"][::step, j], ".", ms=1, label="residual")
-            ax[j, 1].plot(x, top["fitted"][::step, j], ".", ms=1, label=f"fitted {top['name']}")
-    ax[0, 0].set_title("residual tau_J - model over time")
-    ax[-1, 0].set_xlabel("t [s]")
-    if top is not None:
-        ax[0, 1].set_title(f"residual left for '{top['name']}' vs what it depends on")
-        ax[-1, 1].set_xlabel(top["xlabel"])
-        ax[0, 1].legend(loc="upper right", markerscale=8, fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _top_effect(out: dict):
-    """The first selected (else best-ranked) effect: its fitted torque, the residual without it, its signal."""
-    d, log = out["diagnosis"], out["log"]
-    name = d.selected[0] if d.selected else (d.ranking[0]["effect"] if d.ranking else None)
-    if name is None:
-        return None
-    if name in d.model.names:
-        m = d.model
-    else:
-        m = out["model"].copy().add(d.ranking[0]["obj"])
-        m.fit(log)
-    e = next(e for e in m.effects if e.name == name)
-    s = m.signals(log)
-    fitted = m.torque(s, [e])
-    signals = {"q": (log.q, "q [rad]"), "dq": (log.dq, "dq [rad/s]"), "ddq": (log.ddq, "ddq [rad/s^2]"),
-               "t": (np.broadcast_to(log.t[:, None], fitted.shape), "t [s]")}
-    x, xlabel = signals.get(e.signal, (fitted, "its torque [Nm]"))
-    return {"name": name, "fitted": fitted, "residual": m.residual(s) + fitted, "x": x, "xlabel": xlabel}
 
 
 if __name__ == "__main__":

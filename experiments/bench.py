@@ -99,16 +99,17 @@ def tables(n_datasets=100, trials=10, seed=0, log=print):
     log(f"tables 1 and 4 done at {time.perf_counter() - t0:.0f} s")
     t5, latencies = [], []
     for i, theta in enumerate(TABLE5):
-        first, final = [], []
+        first, final, seen = [], [], 0
         for k in range(trials):
             e0, e1, ms = closed_loop_trial(np.array(theta), seed=1000 * (i + 1) + k + seed)
             latencies.append(ms)
             if e0 is not None:
                 first.append(e0.mean), final.append(e1.mean)
+                seen += bool(e1.observed[3])         # rz observed at rest (else the prior's)
         first, final = (np.array(v) if v else np.full((1, 4), np.nan) for v in (first, final))
         t5.append({"applied": list(theta), "mean": final.mean(0).tolist(), "std": final.std(0).tolist(),
                    "first_mean": first.mean(0).tolist(), "first_std": first.std(0).tolist(),
-                   "detected": int(np.isfinite(first[:, 0]).sum()), "trials": trials})
+                   "detected": int(np.isfinite(first[:, 0]).sum()), "trials": trials, "rz_observed": seen})
         log(f"table 5 payload {theta}: first {np.round(first.mean(0), 3)}, at rest {np.round(final.mean(0), 3)}")
     return {"table1": {"nn": t1_nn, "zero": t1_zero}, "table1_baselines": t1_base, "table4": t4, "table5": t5,
             "table1_first": t1_first, "table4_first": t4_first, "table1_detected": int(detected),
@@ -139,6 +140,9 @@ def print_tables(res):
         first = "  ".join(f"{m:6.3f}+-{s:5.3f}" for m, s in zip(row["first_mean"], row["first_std"]))
         rest = "  ".join(f"{m:6.3f}+-{s:5.3f}" for m, s in zip(row["mean"], row["std"]))
         print(f"  {row['applied']}\n     first:   {first}\n     at rest: {rest}   ({row['detected']}/{row['trials']} detected)")
+        if row.get("rz_observed", row["detected"]) < row["detected"]:
+            print(f"              rz: prior, not observed at this pose ({row['detected'] - row['rz_observed']} of "
+                  f"{row['detected']} trials)")
     print(f"estimate (network + VI) median: {res['estimate_ms_median']:.2f} ms (paper: 226 ms)")
     print(f"load change -> compensation applied, median: {res['attach_to_compensation_ms_median']:.0f} ms "
           f"(paper: about 400 ms)")

@@ -14,6 +14,7 @@ from experiments.runner import run as run_loop
 from diagnosis.effect_model import Model
 from diagnosis.logs import prepare
 from experiments.episodes import record_log
+from experiments.figures import Mark, cycle_panel, demo_figure, save
 from rme import RME
 from sim import Plant, PlantConfig
 
@@ -57,21 +58,25 @@ def run(args, seconds, loads, pushes=(), policies=(), use_rme=True, q0=Q_READY, 
 
 
 def print_estimates(log, label="RME"):
-    """The timeline of detections: when, the estimate +- 2 std, the truth at that time and when it was applied."""
+    """The timeline of estimates: when, which kind, the estimate +- 2 std (rz marked where the pose did not observe
+    it: the prior), the truth at that time, when it was applied, and why it was refused or applied late."""
     t, theta = log["t"], log["theta"]
     if not log["history"]:
         print(f"  {label} detected no change")
     for e in log["history"]:
         k = min(np.searchsorted(t, e.t), len(t) - 1)
-        when = (f"applied at {e.applied:.3f} s" if e.accepted else
-                f"rejected: {e.reason} (not a load)")
+        when = (f"applied at {e.applied:.3f} s" if e.accepted else f"refused: {e.reason} (not a load)")
+        if e.accepted and e.reason:
+            when += f" ({e.reason})"
         what = {"detection": "detects a change", "at rest": "estimates again, arm at rest",
                 "monitor": "estimates again, arm at rest: the compensation no longer explained tau_ext",
-                "withdrawn": "withdraws its estimate: at rest the change is beyond what the arm carries"}.get(
-            e.kind, "estimates again, the arm did not come to rest")
-        print(f"  {e.t:6.3f} s  {label} {what}; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
-              f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m  [truth m = {theta[k, 0]:.3f}, "
-              f"r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  {e.seconds * 1e3:.1f} ms, {when}")
+                "accumulated": "combines the windows seen at two orientations",
+                "withdrawn": "withdraws its estimate"}.get(e.kind, "estimates again, the arm did not come to rest")
+        blind = " (rz: prior, not observed at this pose)" if e.kind != "withdrawn" and not e.observed[3] else ""
+        print(f"  {e.t:6.3f} s  {label} {what} [{e.kind}]; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
+              f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m{blind}"
+              f"  [truth m = {theta[k, 0]:.3f}, r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  "
+              f"{e.seconds * 1e3:.1f} ms, {when}")
 
 
 def error_mm(log, reference=None):
@@ -88,12 +93,9 @@ def save_plot(path, title, curves, events=(), ylabel="|p - p*| [mm]"):
     """curves: [(label, t, y)], events: [(t, label)]. Needs matplotlib; says so when it is missing."""
     if not path:
         return
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("--plot: matplotlib is not installed (pip install matplotlib); no figure written")
+    from experiments.figures import pyplot
+    plt = pyplot()
+    if plt is None:
         return
     fig, ax = plt.subplots(figsize=(8, 3.6))
     for label, t, y in curves:
@@ -103,8 +105,15 @@ def save_plot(path, title, curves, events=(), ylabel="|p - p*| [mm]"):
         ax.text(t, ax.get_ylim()[1], label, rotation=90, va="top", ha="right", fontsize=7)
     ax.set(xlabel="t [s]", ylabel=ylabel, title=title)
     ax.legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    print(f"figure written to {path}")
+    save(fig, path)
+
+
+def figure(path, runs, title, marks, **kw):
+    """A demo's figure (experiments.figures.demo_figure) written to path, if a path is given and matplotlib is there."""
+    if path:
+        fig = demo_figure(runs, title, marks, **kw)
+        if fig is not None:
+            save(fig, path)
 
 
 # --- the demos -----------------------------------------------------------------------------------------------
@@ -130,8 +139,8 @@ def static_hold(args):
         applied = runs["with"]["t"][np.argmax(runs["with"]["theta_hat"][:, 0] > 0)]
         print(f"  load change -> compensation          -      {1e3 * (applied - t_attach):6.0f} ms")
         print(f"  estimate time (network + VI)         -      {hist[0].seconds * 1e3:6.2f} ms")
-    save_plot(args.plot, "static hold: payload attached at 1.75 s",
-              [(f"{k} RME", runs[k]["t"], errs[k]) for k in runs], [(t_attach, "attach")])
+    figure(args.plot, runs, f"static hold under CPIC ({args.preset} plant, seed {args.seed})",
+           [Mark(t_attach, f"payload attached: {theta[0]} kg")])
     return runs
 
 
@@ -158,8 +167,8 @@ def basket(args):
         k = at(runs["with"], t_next - 0.05)
         print(f"  {label:30s} {runs['with']['theta'][k, 0]:8.3f}   {runs['with']['theta_hat'][k, 0]:9.3f}   "
               f"{errs['without'][k]:10.2f} / {errs['with'][k]:.2f}")
-    save_plot(args.plot, "basket: sequential loads and pushes",
-              [(f"{k} RME", runs[k]["t"], errs[k]) for k in runs], [(t, lab) for t, lab in events])
+    figure(args.plot, runs, f"basket: sequential loads, pushes between them ({args.preset} plant, seed {args.seed})",
+           [Mark(t, label) for t, _, label in steps] + [Mark(t, "push", "push", d) for t, d, _ in pushes])
     return runs
 
 
@@ -212,8 +221,11 @@ def limit_cycle(args):
             cols.append((1e3 * np.sqrt(np.mean((rho - cycle.radius) ** 2)), 1e3 * np.sqrt(np.mean(u[:, 0] ** 2)),
                          (phase[-1] - phase[0]) / (2 * np.pi * (t1 - t0))))
         print(f"  {t0:4.1f}-{t1:4.1f}     " + "   |   ".join(f"{a:7.1f} {b:7.1f} {c:6.2f}" for a, b, c in cols))
-    save_plot(args.plot, "limit cycle: z over time", [(f"{k} RME", runs[k]["t"], runs[k]["p"][:, 2]) for k in runs],
-              [(t_attach, "attach")], ylabel="z [m]")
+    off = {k: 1e3 * np.hypot(np.hypot(*(r.p[:, 1:] - center[1:]).T) - cycle.radius, r.p[:, 0] - center[0])
+           for k, r in runs.items()}                  # distance to the reference cycle
+    figure(args.plot, runs, f"limit cycle in the y-z plane ({args.preset} plant, seed {args.seed})",
+           [Mark(t_attach, f"payload attached: {theta[0]} kg")], errors=off,
+           error_label="distance to the cycle [mm]", path_panel=cycle_panel(runs, cycle, t_attach))
     return runs
 
 
@@ -242,8 +254,13 @@ def pick_place(args):
                      (10.95, "back at the start")):
         print(f"  {t:5.2f} s {label:22s} {errs['without'][at(runs['without'], t)]:10.1f} / "
               f"{errs['with'][at(runs['with'], t)]:.1f}")
-    save_plot(args.plot, "pick and place", [(f"{k} RME", runs[k]["t"], errs[k]) for k in runs],
-              [(t, lab) for t, _, lab in plan])
+    if args.plot:                                     # the path the same arm takes with no load: its tracking
+        free = run(args, seconds, [], policies=[(t, Attractor(p, R0)) for t, p, _ in plan], use_rme=False)
+        figure(args.plot, runs, f"pick and place ({args.preset} plant, seed {args.seed})",
+               [Mark(t, lab, "phase") for t, _, lab in plan[1:]] +
+               [Mark(2.5, "grasp: 0.7 kg"), Mark(6.0, "+0.5 kg"), Mark(8.0, "release")],
+               errors={k: 1e3 * np.linalg.norm(r.p - free.p, axis=1) for k, r in runs.items()},
+               error_label="|p - p unloaded| [mm]")
     return runs
 
 
@@ -257,14 +274,24 @@ def fit_friction_model(config, seconds=12.0, seed=0):
     return model
 
 
-def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1.4):
-    """First RME estimate after attaching theta during a CPIC hold at the ready pose on the plant `config`."""
+def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1.4, why=False):
+    """First RME estimate after attaching theta during a CPIC hold at the ready pose on the plant `config` (None if
+    there is none); with why: (that estimate or None, why there is none or "")."""
     plant = Plant(config, rng=np.random.default_rng(seed))
     robot = plant.robot
     ctrl = CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
     est = RME(robot, rng=np.random.default_rng(seed + 1), correction=correction)
     run_loop(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_attach, theta[0], theta[1:])], q0=Q_READY)
-    return est.history[0] if est.history else None
+    first = est.history[0] if est.history else None
+    if not why:
+        return first
+    s, left = est.settings, seconds - t_attach
+    reason = "" if first is not None else (
+        f"held as a possible press on the hand (its force's line passes through the flange); it waits hold_axial = "
+        f"{s.hold_axial:g} s, the run ends {left:g} s after the load" if est.changes_held else
+        "detected, but the change did not look like a payload" if est.changes_not_payload else
+        f"no detection in the {left:g} s after the load")
+    return first, reason
 
 
 def better_model(args):
@@ -279,10 +306,11 @@ def better_model(args):
     print("\n  payload (m, rx, ry, rz)          RME error (m [kg], rx, ry, rz [m])")
     rows = []
     for i, theta in enumerate([(0.3, 0.03, 0.0, 0.13), (0.9, 0.05, -0.03, 0.13), (1.29, 0.05, 0.01, 0.13)]):
-        errs = [hold_estimate(config, np.array(theta), seed=args.seed + 10 * i, correction=c) for c in (None, model)]
-        errs = [None if e is None else e.mean - np.array(theta) for e in errs]
+        found = [hold_estimate(config, np.array(theta), seed=args.seed + 10 * i, correction=c, why=True)
+                 for c in (None, model)]
+        errs = [None if e is None else e.mean - np.array(theta) for e, _ in found]
         rows.append(errs)
-        for label, e in zip(("nominal model", "with friction"), errs):
-            txt = "not detected" if e is None else "  ".join(f"{v:+.4f}" for v in e)
+        for label, e, (_, why) in zip(("nominal model", "with friction"), errs, found):
+            txt = f"no estimate: {why}" if e is None else "  ".join(f"{v:+.4f}" for v in e)
             print(f"  {str(theta):32s} {label:14s} {txt}")
     return rows

@@ -21,3 +21,18 @@ def times_us(fn, repeats=2000, warmup=20) -> np.ndarray:
 def median_us(fn, repeats=2000):
     """Median wall time of fn() in microseconds over `repeats` calls (after 20 warm-up calls)."""
     return float(np.median(times_us(fn, repeats)))
+
+
+def print_table(title: str, header, rows, note: str = ""):
+    """A labelled table: the title, a header (columns' names with units), one line per row (the first column left-
+    aligned, the others right-aligned, values already rounded to strings), and a sentence on how to read it."""
+    rows = [[str(v) for v in r] for r in rows]
+    widths = [max(len(str(h)), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
+    line = lambda cells: "  " + "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in
+                                           enumerate(zip(cells, widths)))
+    print(title)
+    print(line([str(h) for h in header]))
+    for r in rows:
+        print(line(r))
+    if note:
+        print(f"  {note}")

@@ -127,7 +127,26 @@ def main(argv=None):
     if a.command == "train":
         train_from_scratch(a.episodes, a.seed, a.out, log=lambda s: print(s, flush=True))
     else:
-        r = benchmark(a.out)
-        for k, v in r.items():
-            print(f"{k:22s} {v}")
+        print_benchmark(benchmark(a.out), a.out)
     return 0
+
+
+def print_benchmark(r: dict, path: str):
+    """benchmark's result as labelled tables: what this run measured, and what the weights file records of the run
+    that trained it."""
+    from experiments.timing_tools import print_table
+    print_table("the network's time, measured in this run", ["call", "median [us]"],
+                [["forward, one window", f"{r['forward_median_us']:.1f}"],
+                 ["features of a 200-sample window", f"{r['features_median_us']:.1f}"],
+                 ["training step, batch 32", f"{r['train_step_median_us']:.0f}"]],
+                f"training throughput: {r['train_samples_per_s']:.0f} samples/s.")
+    rec = lambda v, fmt: "-" if v is None else " ".join(format(x, fmt) for x in np.atleast_1d(v))
+    print_table(f"\nrecorded in {path} by the run that trained it (not measured now)", ["training [s]",
+                "data generation [s]", "iterations", "epochs", "validation MSE m, rx, ry, rz [kg^2, m^2]"],
+                [[rec(r["training_seconds"], ".0f"), rec(r["data_seconds"], ".0f"), rec(r["iterations"], "d"),
+                  rec(r["epochs"], "d"), rec(r["val_mse"], ".2e")]], "")
+    if "held_out_mse" in r:
+        print_table("\nMSE on fresh simulated episodes (measured now)", ["predictor", "m [kg^2]", "rx [m^2]",
+                    "ry [m^2]", "rz [m^2]"], [[name, *(f"{v:.2e}" for v in r[key])] for name, key in
+                                              (("network", "held_out_mse"), ("training-set mean", "held_out_mean_mse"))],
+                    "lower is better; the training-set mean is what a network that learned nothing would score.")
