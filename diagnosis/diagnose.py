@@ -16,7 +16,7 @@ from diagnosis.effect_model import Model
 from diagnosis.effects import EffectConfig
 from diagnosis.findings import collect, format_findings
 from diagnosis.heldout import Selection, blocks_of, rank
-from diagnosis.logs import Log, LogConfig, load_log
+from diagnosis.logs import Log, LogConfig, cleaning_summary, load_log
 
 
 @dataclass(frozen=True)
@@ -46,8 +46,9 @@ class DiagnoseConfig:
 
 @dataclass
 class Comparison:
-    """compare() output: per joint (n,) rms [Nm], fit [%] (100 (1 - NRMSE) of tau_J), mean [Nm]; regimes: name ->
-    {rms, mean, share} (n,) each; worst: [{t0, t1, rms, joint}]; residual (T, n) = tau_J - model; t (T,)."""
+    """compare() output: per joint (n,) rms [Nm], fit [%] (100 (1 - NRMSE) of tau_J; NaN where undefined, fit_note
+    says why), mean [Nm]; regimes: name -> {rms, mean, share} (n,) each (NaN where a joint has no sample in the
+    regime); worst: [{t0, t1, rms, joint}]; residual (T, n) = tau_J - model; t (T,)."""
     rms: np.ndarray
     fit: np.ndarray
     mean: np.ndarray
@@ -55,6 +56,22 @@ class Comparison:
     worst: list
     residual: np.ndarray
     t: np.ndarray
+    fit_note: dict = field(default_factory=dict)
+
+
+def fit_percent(y, r):
+    """Per joint (n,): 100 (1 - RMS(r) / std(y)), the share of the torque's variation y (T, n) the model explains
+    given its residual r (T, n), and {joint: why} where it is no share: tau_J varies by less than the model's error
+    (a static log), so 1 - NRMSE would be a large negative number that says nothing (NaN there)."""
+    rms, spread = np.sqrt(np.mean(r ** 2, axis=0)), y.std(axis=0)
+    fit, notes = np.full(len(rms), np.nan), {}
+    for j in range(len(rms)):
+        if spread[j] > rms[j]:
+            fit[j] = 100 * (1 - rms[j] / spread[j])
+        else:
+            notes[f"J{j + 1}"] = (f"tau_J varies by {spread[j]:.3f} Nm RMS, less than the {rms[j]:.3f} Nm error: "
+                                  "nothing for a share to explain")
+    return fit, notes
 
 
 def compare(model: Model, log, config: CompareConfig = CompareConfig()) -> Comparison:
@@ -63,7 +80,7 @@ def compare(model: Model, log, config: CompareConfig = CompareConfig()) -> Compa
     y = s.measured()
     r = y - model.predict(s)
     rms = np.sqrt(np.mean(r ** 2, axis=0))
-    fit = 100 * (1 - np.linalg.norm(r, axis=0) / np.maximum(np.linalg.norm(y - y.mean(axis=0), axis=0), 1e-300))
+    fit, notes = fit_percent(y, r)
     adq, addq = np.abs(s.dq), np.abs(s.ddq)
     masks = {"at rest": adq < config.v_rest, "moving": adq >= config.v_rest, "fast": adq >= config.v_fast,
              "accelerating": addq >= config.a_acc, "dq > 0": s.dq >= config.v_sign, "dq < 0": s.dq <= -config.v_sign}
@@ -82,7 +99,7 @@ def compare(model: Model, log, config: CompareConfig = CompareConfig()) -> Compa
         j = int(np.argmax(seg_rms[b] / np.maximum(rms, 1e-12)))
         worst.append({"t0": float(s.t[rows[0]]), "t1": float(s.t[rows[-1]]), "joint": j + 1,
                       "rms": float(seg_rms[b, j]), "ratio": float(score[b])})
-    return Comparison(rms, fit, r.mean(axis=0), regimes, worst, r, s.t)
+    return Comparison(rms, fit, r.mean(axis=0), regimes, worst, r, s.t, notes)
 
 
 @dataclass
@@ -186,18 +203,29 @@ def heldout_rms(model: Model, log, config: DiagnoseConfig = DiagnoseConfig()) ->
 
 
 # --- text --------------------------------------------------------------------------------------------
-def _row(label, values, fmt="{:8.3f}"):
-    return f"  {label:26s}" + "".join(fmt.format(v) for v in values)
+def _row(label, values, fmt="{:8.3f}", blank="       -"):
+    """A table row; a NaN cell (nothing to compute there, the notes say why) prints as `blank`."""
+    cell = lambda v: blank if isinstance(v, (float, np.floating)) and not np.isfinite(v) else fmt.format(v)  # noqa: E731
+    return f"  {label:26s}" + "".join(cell(v) for v in values)
+
+
+def _share(x) -> str:
+    """A share of explained variance as a 9-wide percent; below -100 % it is no share: the effect made it worse."""
+    return f"{100 * x:8.1f}%" if x >= -1 else "    worse"
 
 
 def format_comparison(c: Comparison) -> str:
     """compare() as a table: joints across, error measures and regimes down."""
     n = len(c.rms)
     lines = [_row("per joint", [f"J{j + 1}" for j in range(n)], "{:>8s}"), _row("RMS error [Nm]", c.rms),
-             _row("fit [%] (100 (1 - NRMSE))", c.fit, "{:8.1f}"), _row("mean error [Nm]", c.mean),
-             "  RMS error by regime [Nm] (share of samples in brackets on the right):"]
+             _row("fit [%] (100 (1 - NRMSE))", c.fit, "{:8.1f}"), _row("mean error [Nm]", c.mean)]
+    if c.fit_note:
+        lines.append(f"    fit '-' on {', '.join(c.fit_note)}: {next(iter(c.fit_note.values()))}"
+                     + (" (and alike)" if len(c.fit_note) > 1 else ""))
+    lines.append("  RMS error by regime [Nm] (share of samples in brackets on the right; '-': the joint has no "
+                 "sample in the regime):")
     for name, r in c.regimes.items():
-        lines.append(_row(f"  {name}", r["rms"]) + f"   ({100 * np.nanmean(r['share']):.0f} %)")
+        lines.append(_row(f"  {name}", r["rms"]) + f"   ({100 * np.mean(r['share']):.0f} %)")
     for name in ("dq > 0", "dq < 0"):
         lines.append(_row(f"  mean error, {name}", c.regimes[name]["mean"]))
     worst = "; ".join(f"{w['t0']:.2f}-{w['t1']:.2f} s (J{w['joint']} {w['rms']:.3f} Nm, {w['ratio']:.1f}x its RMS)"
@@ -217,7 +245,7 @@ def format_diagnosis(d: Diagnosis, config: DiagnoseConfig = DiagnoseConfig()) ->
              f"  {'':4s} {'':14s} {'':6s} {'total':>9s}  {'worse':14s} held-out RMS change [%] (negative = better)"]
     for i, r in enumerate(d.ranking):
         joints, worse = " ".join(map(str, r["joints"])) or "-", " ".join(map(str, r["worse"])) or "-"
-        lines.append(f"  {i + 1:4d} {r['effect']:14s} {r['k']:6d} {100 * r['explained']:8.1f}%  {joints:14s} "
+        lines.append(f"  {i + 1:4d} {r['effect']:14s} {r['k']:6d} {_share(r['explained'])}  {joints:14s} "
                      + " ".join(f"{v:.3f}" for v in r["rms_after"]))
         lines.append(f"  {'':4s} {'':14s} {'':6s} {100 * r['total_change']:+8.1f}%  {worse:14s} "
                      + " ".join(f"{100 * v:+.1f}" for v in r["rms_change"]))
@@ -305,12 +333,14 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
     d = diagnose(model, s)
     i = log.info
     text = [f"log {i.get('source')}: {len(log)} samples, {log.t[-1] - log.t[0]:.2f} s at dt = {i.get('dt', 0):.4g} s; "
-            f"{i.get('stale_rows', 0)} stale rows and {i.get('nan_rows', 0)} NaN rows dropped; "
-            f"filter: {i.get('filter')}",
+            f"{cleaning_summary(i)}; filter: {i.get('filter')}",
             f"compare: {start} model ({' + '.join(model.names)}), residual = tau_J - model = -tau_ext (paper sign)",
             format_comparison(before), "diagnose:", format_diagnosis(d)]
     js = {"log": i.get("source"), "samples": len(log), "stale_rows": i.get("stale_rows"), "nan_rows": i.get("nan_rows"),
-          "model": model.names, "rms": before.rms, "fit_percent": before.fit, "rms_heldout": d.rms,
+          "bad_rows": i.get("bad_rows", 0), "gaps": i.get("gaps", 0), "missing_cycles": i.get("missing_cycles", 0),
+          "longest_gap_s": i.get("longest_gap", 0.0),
+          "model": model.names, "rms": before.rms, "fit_percent": before.fit, "fit_undefined": before.fit_note,
+          "rms_heldout": d.rms,
           "ranking": [{"effect": r["effect"], "explained": r["explained"], "joints": r["joints"],
                        "significant": r["significant"], "rms_after": r["rms_after"], "worse_joints": r["worse"],
                        "rms_change_percent": 100 * r["rms_change"], "total_change_percent": 100 * r["total_change"]}
@@ -327,7 +357,8 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
         text += [] if "auto" in add else [added.report()]
         text += [format_comparison(after),
                  "  held-out RMS [Nm]  " + " ".join(f"{v:.3f}" for v in held)]
-        js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit, "rms_heldout": held,
+        js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit,
+                       "fit_undefined": after.fit_note, "rms_heldout": held,
                        "params": {e.name: added.params[e.name] for e in added.free},
                        "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl},
                        "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()}}

@@ -26,6 +26,15 @@ class EffectConfig:
     sigmoid_p3: tuple = (-0.3, 0.3)          # rad/s, bounds of Gaz p3 (fitted |p3| < 0.05, Gaz et al. 2019)
     sigmoid_rows: int = 2000                 # samples per joint used for the sigmoid's fit (every k-th row)
     coulomb_rows: int = 1000                 # ... for the Coulomb width (each one a filter window of dq; ours)
+    max_mass: float = 4.0                    # kg, payload mass bound: the Panda's rated 3 kg (datasheet) + 1 kg margin
+    max_com: float = 0.3                     # m, payload CoM distance bound |r| from the ee origin: within reach of
+    #                                          the hand (a tool or a held object; a CoM metres away is not a load)
+    offset_max: float = 1.0                  # Nm, |tau_0| bound: the load-free torque offset of a Panda is a few
+    #                                          tenths, up to about 1 Nm on J1-J4 (panda_facts.md; Gaz fo <= 0.25 Nm)
+    scale_max: float = 2.0                   # upper bound of k_G, k_M: a model off by 2x is another arm
+    friction_factor: float = 10.0            # friction, rotor bounds: this many times the largest value Gaz et al.
+    #                                          2019 identified on a Panda (fv 0.23, fc 0.36, p1 1.28) or the
+    #                                          0.05 kg m^2 rotor inertia of the realistic plant
     bias_joints: int = 0                     # joints whose sin q_k, cos q_k enter the pose_bias effect (7 on the
     #                                          Panda); 0: no pose_bias in the library (opt-in: a map of 15 n
     #                                          parameters absorbs any static error, a wrong gravity scale included)
@@ -145,6 +154,7 @@ class Effect:
     lower: tuple | None = None
     upper: tuple | None = None
     physical: str = ""
+    radius: float = np.inf
 
     def __post_init__(self):
         for name in ("lower", "upper"):
@@ -256,7 +266,7 @@ def segments(effects, n: int, g, relax=()) -> list:
             out.append(Segment(e.name, i0, i0 + k, np.full(k, -np.inf), np.full(k, np.inf)))
         else:
             lo, hi = e.bounds(n)
-            out.append(Segment(e.name, i0, i0 + k, lo, hi, e.physical, np.asarray(g, float), e.labels(n)))
+            out.append(Segment(e.name, i0, i0 + k, lo, hi, e.physical, np.asarray(g, float), e.labels(n), e.radius))
         i0 += k
     return out
 
@@ -271,36 +281,43 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
     with its physical bounds: scales, masses, inertias and friction coefficients are >= 0."""
     c = config
     body = ("m", "m_cx", "m_cy", "m_cz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
+    inf, k = np.inf, c.friction_factor
+    load = dict(payload=True, smooth=False, radius=c.max_com)
     effects = [
         Effect("gravity", "the arm's own weight, G(q) of the nominal link masses and CoMs, scaled by k_G",
-               lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False, lower=(0.0,)),
+               lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False, lower=(0.0,),
+               upper=(c.scale_max,)),
         Effect("motion", "the arm's inertial, Coriolis and centrifugal torques M(q) ddq + C(q, dq) dq, scaled by k_M",
                lambda s: s.motion[:, :, None], ("k_M",), ("(1 = nominal)",), nominal=1.0, signal="ddq", smooth=False,
-               lower=(0.0,)),
+               lower=(0.0,), upper=(c.scale_max,)),
         Effect("payload", "a load at the end-effector whose weight pulls on the arm (static: Eqs. 4-5, "
                "phi = (m, m r), r in the ee frame)", lambda s: -s.payload, ("m", "m_rx", "m_ry", "m_rz"),
-               ("kg", "kg m", "kg m", "kg m"), payload=True, smooth=False, lower=(0.0, -np.inf, -np.inf, -np.inf)),
+               ("kg", "kg m", "kg m", "kg m"), lower=(0.0, -inf, -inf, -inf), upper=(c.max_mass, inf, inf, inf),
+               physical="payload", **load),
         Effect("rigid_payload", "a rigid load at the end-effector: its weight and its inertia under motion "
                "(Newton-Euler; inertia about the ee origin; pseudo-inertia positive semidefinite)", lambda s: -s.body,
-               body, ("kg", "kg m", "kg m", "kg m") + ("kg m^2",) * 6, payload=True, smooth=False,
-               physical="rigid_body"),
+               body, ("kg", "kg m", "kg m", "kg m") + ("kg m^2",) * 6, physical="rigid_body", **load,
+               lower=(0.0,) + (-inf,) * 9, upper=(c.max_mass,) + (inf,) * 9),
         Effect("viscous", "friction growing in proportion to joint speed (lubricant shear in the gears), fv dq",
-               lambda s: s.dq, ("fv",), ("Nm s/rad",), per_joint=True, signal="dq", smooth=False, lower=(0.0,)),
+               lambda s: s.dq, ("fv",), ("Nm s/rad",), per_joint=True, signal="dq", smooth=False, lower=(0.0,),
+               upper=(k * 0.23,)),
         Effect("coulomb", "sliding friction of constant size opposing motion, fc sign(dq), smoothed as "
                "fc tanh(dq / w) with the width w fitted per joint", lambda s, nl: np.tanh(s.dq / nl[:, 0]),
-               ("fc",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,),
+               ("fc",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,), upper=(k * 0.36,),
                nonlinear=(("w",), ("rad/s",), (c.coulomb_width,)),
                fit_nonlinear=lambda s, rows, z, nl: fit_coulomb(s, rows, z, nl, c.coulomb_widths, c.coulomb_rows)),
         Effect("sigmoid", "joint friction as a sigmoid of speed (Gaz et al. 2019): p1/(1+exp(-p2(dq+p3))) - "
                "p1/(1+exp(-p2 p3))", lambda s, nl: sigmoid_shape(s.dq, nl[:, 0], nl[:, 1]),
-               ("p1",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,),
+               ("p1",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,), upper=(k * 1.28,),
                nonlinear=(("p2", "p3"), ("s/rad", "rad/s"), (10.0, 0.0)),
                fit_nonlinear=lambda s, rows, z, nl: fit_sigmoid(s, rows, z, nl, c.sigmoid_p2, c.sigmoid_p3,
                                                                 c.sigmoid_rows)),
         Effect("offset", "a constant bias of each joint torque sensor (calibration drift)",
-               lambda s: np.ones_like(s.q), ("tau_0",), ("Nm",), per_joint=True, signal="t", smooth=False),
+               lambda s: np.ones_like(s.q), ("tau_0",), ("Nm",), per_joint=True, signal="t", smooth=False,
+               lower=(-c.offset_max,), upper=(c.offset_max,)),
         Effect("rotor", "the motor rotor's inertia seen through the gearbox, I_a ddq, missing from a link-only model",
-               lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False, lower=(0.0,)),
+               lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False, lower=(0.0,),
+               upper=(k * 0.05,)),
         Effect("tilt", "the base is not level: gravity rotated by ax about world x, then ay about world y, "
                "G(q; g') - G(q; g) = -W dg with dg = Ry(ay) Rx(ax) g - g (exact)",
                lambda s: -s.gravity_map, ("ax", "ay"), ("rad", "rad"), smooth=False, physical="tilt",
