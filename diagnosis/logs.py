@@ -366,22 +366,6 @@ def _interp(grid, t, v):
     return np.stack([np.interp(grid, t, v[:, j]) for j in range(v.shape[1])], axis=1)
 
 
-def cleaning_summary(info: dict) -> str:
-    """One sentence of what loading dropped and filled in (info of prepare): malformed, NaN and stale rows dropped,
-    cycles missing from the time stamps, all filled in by interpolation onto the uniform grid."""
-    lines = info.get("bad_lines") or []
-    where = f" (file lines {', '.join(map(str, lines))}{' ...' if info.get('bad_rows', 0) > len(lines) else ''})" \
-        if lines else ""
-    text = (f"rows dropped: {info.get('bad_rows', 0)} malformed{where}, {info.get('nan_rows', 0)} with NaN/inf, "
-            f"{info.get('stale_rows', 0)} stale repeats; ")
-    if info.get("gaps"):
-        text += (f"{info['missing_cycles']} missing cycles in {info['gaps']} gaps of the time stamps (longest "
-                 f"{1e3 * info['longest_gap']:.0f} ms at t = {info['gap_at']:.3f} s)")
-    else:
-        text += "no gaps in the time stamps"
-    return text + (", all filled in by linear interpolation" if info.get("resampled") else "")
-
-
 # --- writing -----------------------------------------------------------------------------------------
 def write_npz(path, log) -> None:
     """Write a log (a Log or a dict of arrays t, q, dq, [ddq], tau_J, tau_ext) as .npz, tau_ext in the paper's sign."""

@@ -131,11 +131,12 @@ def violations(seg: Segment, c) -> list:
         ratio = np.linalg.norm(seg.g + c) / np.linalg.norm(seg.g) - 1
         return [("|g + dg| / |g| - 1", float(ratio))] if abs(ratio) > 1e-3 else []
     out = body_issues(c) if seg.kind == "rigid_body" else []
-    bad = np.flatnonzero((c < seg.lo) | (c > seg.hi))
+    tol = 1e-6 * (1 + np.abs(np.where(np.isfinite(seg.lo), seg.lo, 0)) + np.abs(np.where(np.isfinite(seg.hi), seg.hi, 0)))
+    bad = np.flatnonzero((c < seg.lo - tol) | (c > seg.hi + tol))
     out += [(seg.labels[i] if seg.labels else str(i), float(c[i])) for i in bad if not out or i > 0]
     if seg.kind in ("payload", "rigid_body") and np.isfinite(seg.radius):
         h = float(np.linalg.norm(c[1:4]))
-        if h > seg.radius * max(c[0], 0.0) * (1 + 1e-6) + 1e-12:
+        if h > seg.radius * max(c[0], 0.0) * (1 + 1e-6) + 1e-6:          # 1e-6 kg m: nothing held there
             out.append(("|r| [m]", h / c[0] if c[0] > 0 else np.inf))
     return out
 
