@@ -10,7 +10,10 @@ import os
 import sys
 
 
+import numpy as np
+
 from dynamics import Robot
+from diagnosis.anomalies import AnomalyConfig, oscillation, steps
 from diagnosis.compare import CompareConfig, Comparison, compare, fit_percent  # noqa: F401 (the package's API)
 from diagnosis.effect_model import Model
 from diagnosis.effects import EffectConfig
@@ -86,7 +89,8 @@ def _save(model: Model, path: str, force: bool):
 
 
 def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, config=EffectConfig()) -> dict:
-    """compare -> diagnose -> add -> compare on a loaded log; the text report, the JSON object and the pieces."""
+    """compare -> diagnose -> add -> compare on a loaded log, and what the log holds that is no effect (a vibration,
+    a step: each segment between steps diagnosed too); the text report, the JSON object and the pieces."""
     robot = robot or Robot.panda()
     model = Model.nominal(robot, config) if start == "nominal" else Model.static(robot, config)
     s = model.signals(log)                         # the log's rigid-body terms, computed once
@@ -101,12 +105,15 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
           "bad_rows": i.get("bad_rows", 0), "gaps": i.get("gaps", 0), "missing_cycles": i.get("missing_cycles", 0),
           "longest_gap_s": i.get("longest_gap", 0.0),
           "model": model.names, "rms": before.rms, "fit_percent": before.fit, "fit_undefined": before.fit_note,
-          "rms_heldout": d.rms,
+          "rms_heldout": d.rms, "excitation": d.info.get("excitation"),
           "ranking": [{"effect": r["effect"], "explained": r["explained"], "joints": r["joints"],
                        "significant": r["significant"], "rms_after": r["rms_after"], "worse_joints": r["worse"],
                        "rms_change_percent": 100 * r["rms_change"], "total_change_percent": 100 * r["total_change"]}
                       for r in d.ranking],
           "selected": d.selected, "stop": d.stop, "findings": d.findings}
+    extra = log_findings(log, s, model, before, d)
+    text += extra["text"]
+    js.update(vibration=extra["vibration"], steps=extra["steps"], segments=extra["segments"])
     out = {"model": model, "before": before, "diagnosis": d, "log": log}
     if add:
         added = model.copy()
@@ -122,10 +129,51 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
                        "fit_undefined": after.fit_note, "rms_heldout": held,
                        "params": {e.name: added.params[e.name] for e in added.free},
                        "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl},
-                       "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()}}
+                       "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()},
+                       "not_identified": added.held}
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)
     return out
+
+
+def log_findings(log: Log, s, model: Model, before, d, config: AnomalyConfig = AnomalyConfig()) -> dict:
+    """The vibration of the residual left after selection, the steps of the starting model's residual the pose does
+    not explain, and a diagnosis of each segment between steps: {vibration, steps, segments, text (lines)}."""
+    robot, c = model.robot, model.config
+    r = d.model.residual(s) if d.model.free else before.residual
+    vib = oscillation(log.t, r, log.dq, config)
+    reach = float(np.hypot(c.max_mass, c.max_mass * c.max_com))            # |phi| of the largest plausible load
+
+    def pose_torque(qa, qb):
+        dY = robot.payload_regressor(qb) - robot.payload_regressor(qa)
+        return np.linalg.norm(dY, 2) * reach + c.scale_max / 20 * np.linalg.norm(robot.gravity(qb) - robot.gravity(qa))
+    found = steps(log.t, before.residual, log.q, log.dq, pose_torque, config)
+    text, segs = [], []
+    if vib:
+        text.append(f"  vibration: {vib['frequency']:.2f} Hz, damping ratio {vib['damping']:.3f} (decay "
+                    f"{vib['decay']:.2f} 1/s), {vib['amplitude']:.3f} Nm on J{vib['joint']} from t = {vib['t0']:.2f} s "
+                    f"(joints {vib['joints']}): a flexible or loosely held load vibrating at rest; no effect of the "
+                    "model is a vibration, so it stays in the residual (hold still longer, or stiffen the grasp)")
+    bounds = [log.t[0]] + [x["t"] for x in found] + [log.t[-1]]
+    for x in found:
+        text.append(f"  step: the static torque changes by {x['size']:.2f} Nm at t = {x['t']:.3f} s (the pose "
+                    f"explains {100 * x['explained']:.0f} % of it): a load changed during the log; each segment is "
+                    "diagnosed on its own below")
+    for t0, t1 in zip(bounds[:-1], bounds[1:]) if found else ():
+        rows = (log.t >= t0 + config.guard) & (log.t <= t1 - config.guard)
+        seg = {"t0": float(t0), "t1": float(t1)}
+        try:
+            part = diagnose(model, log.rows(rows))
+            seg.update(selected=part.selected, stop=part.stop, model=part.model.report(),
+                       findings=[f["text"] for f in part.findings])
+            text.append(f"  segment {t0:.2f}-{t1:.2f} s: selected {part.selected or 'nothing'}; {part.stop}")
+            text += [f"      {line.strip()}" for line in part.model.report().splitlines()[len(model.names):]]
+        except ValueError as err:
+            seg.update(error=str(err))
+            text.append(f"  segment {t0:.2f}-{t1:.2f} s: not diagnosed: {err}")
+        segs.append(seg)
+    return {"vibration": vib, "steps": found, "segments": segs,
+            "text": (["findings on the log (not effects of the model):"] + text) if text else []}
 
 
 if __name__ == "__main__":

@@ -103,6 +103,8 @@ class Signals:
             return Y
         flat = Y.reshape(len(Y), -1)
         cols = np.flatnonzero(np.any(flat != 0, axis=0))
+        if len(cols) == 0:                                   # e.g. friction of an arm that never moves
+            return Y
         out = flat.copy()
         out[:, cols] = savgol_filter(np.ascontiguousarray(flat[:, cols].T), self.smoothing[0], self.smoothing[1],
                                      axis=-1, mode="interp").T

@@ -55,7 +55,8 @@ def describe(asked: dict, selected: bool, supported=None, excitation: str = "") 
     the log could identify (advice to scale another is left out)."""
     e = asked["effect"]
     viol = asked["violations"]
-    special = [(lbl, v) for lbl, v in viol if lbl in BEYOND and (lbl != "m" or v > 0)]
+    negative = any(lbl == "m" and v < 0 for lbl, v in viol)                   # a negative mass says the most
+    special = [] if negative else [(lbl, v) for lbl, v in viol if lbl in BEYOND and (lbl != "m" or v > 0)]
     if special:
         lbl, v = special[0]
         what, cause = BEYOND[lbl][0].format(v=v), BEYOND[lbl][1]

@@ -149,23 +149,30 @@ def _identifiable(cands, base, sep: Separability):
 
 
 def _ambiguity(top, order, base, sep: Separability):
-    """A finding if an effect of the other kind (a load against the robot's own) that helps on its own is mimicked by
-    `top` in a direction the log identifies without it: the log cannot say which of the two is there; else None."""
+    """A finding if top and an effect of the other kind (a load against the robot's own) explain the same torque: a
+    direction of the load the log identifies beside `base` is lost once the robot's effect is fitted too
+    (Separability.dims), and the other effect helps on its own or is lost entirely (whatever it is, top could be
+    it), so the log cannot say which of the two is there; else None. The text gives the
+    share of the fitted load's torque the robot's effect makes as well (Separability.shared)."""
     for r in order[1:]:
         e = r["obj"]
-        if not r["joints"] or e.payload == top["obj"].payload:
+        if e.payload == top["obj"].payload:
             continue
-        alone, given = sep.dims(e, base), sep.dims(e, base + [top["obj"]])
-        if alone is None or given is None or given >= alone:
-            continue
-        load, robot = (e.name, top["effect"]) if e.payload else (top["effect"], e.name)
-        some = f"{alone - given} of the {alone} directions of {e.name} it can see " + \
+        load, robot = (r, top) if e.payload else (top, r)
+        alone, given = sep.dims(load["obj"], base), sep.dims(load["obj"], base + [robot["obj"]])
+        if alone is None or given is None or given >= alone or (not r["joints"] and given > 0):
+            continue                    # told apart, or a partly mimicked effect that does not help on its own
+        L, R = load["effect"], robot["effect"]
+        share = sep.shared(load["obj"], load["p"], robot["obj"], base)
+        lost = f"{alone - given} of the {alone} directions of {L} it identifies alone " + \
             ("is a torque" if alone - given == 1 else "are torques")
-        text = (f"the log cannot tell {top['effect']} from {e.name} ({describe_excitation(sep.excitation)}): at its "
-                f"states {some} that {top['effect']} makes as well, so a load ({load}) and the robot's own {robot} explain the same "
-                f"torque; neither is added. To separate them, hold the load at three or more poses that turn the "
-                f"hand differently against gravity, or fit the robot's {robot} on a log without the load first")
-        return dict(effect=f"{top['effect']}/{e.name}", joints=[], violations=[], kind="ambiguity", text=text)
+        text = (f"the log cannot tell {L} from {R} ({describe_excitation(sep.excitation)}): {lost} {R} makes as "
+                f"well" + (f" ({100 * share:.0f} % of the fitted {L}'s torque is)" if share is not None else "")
+                + f", so a load and the robot's own {R} explain the same torque; neither is added. To separate them, "
+                f"hold the load at three or more poses that turn the hand differently against gravity, or fit the "
+                f"robot's {R} on a log without the load first")
+        return dict(effect=f"{top['effect']}/{e.name}", joints=[], violations=[], kind="ambiguity", text=text,
+                    shared=share)
     return None
 
 

@@ -110,3 +110,20 @@ class Separability:
         k = len(parts[-1][1])
         lam, _ = conditional(M, slice(M.shape[0] - k, M.shape[0]))
         return int(np.sum(lam >= self.config.min_info))
+
+    def shared(self, effect, p, other, given=()) -> float | None:
+        """The share of the torque of `effect` with parameters p (its fitted values) that `other` can make as well at
+        this log's states: 1 - x^T C_other x / x^T C x with x = p / scale, C the information of the effect beside
+        `given`, C_other beside `given` and `other` (0: nothing shared, 1: all). None without plausible scales."""
+        parts = [self._block(e) for e in list(given) + [other, effect]]
+        if np.all(np.isnan(parts[-1][1])):
+            return None
+        M = information([b for b, _ in parts], [c for _, c in parts], self.w)
+        k, k0 = len(parts[-1][1]), len(parts[-2][1])
+        x = np.asarray(p, float) / np.nan_to_num(parts[-1][1], nan=1.0)
+        K = M.shape[0]
+        keep = np.r_[0:K - k - k0, K - k:K]                               # without `other`
+        lam_o, V_o = conditional(M, slice(K - k, K))
+        lam_a, V_a = conditional(M[np.ix_(keep, keep)], slice(len(keep) - k, len(keep)))
+        alone = float(np.sum(lam_a * (V_a.T @ x) ** 2))
+        return 1.0 - float(np.sum(lam_o * (V_o.T @ x) ** 2)) / alone if alone > 0 else None
