@@ -46,17 +46,17 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     args = p.parse_args(argv)
     if args.log is None:
         p.error("a LOG file is needed")
-    if args.plot and importlib.util.find_spec("matplotlib") is None:
-        print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
-        return 2
-    if args.save and not args.add:
-        p.error("--save needs --add (the effects to fit and save)")
     for flag, path in (("--save", args.save), ("--plot", args.plot)):
         folder = os.path.dirname(os.path.abspath(path)) if path else None
         if folder and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
             print(f"error: {flag}: expected a writable folder for {path!r}, found no such folder" if not
                   os.path.isdir(folder) else f"error: {flag}: the folder of {path!r} is not writable", file=sys.stderr)
             return 2
+    if args.plot and importlib.util.find_spec("matplotlib") is None:
+        print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
+        return 2
+    if args.save and not args.add:
+        p.error("--save needs --add (the effects to fit and save)")
     try:
         robot = Robot.from_xml(args.xml, ee=args.ee) if args.xml else Robot.panda()
         log = load_log(args.log, LogConfig(drop_nan=args.drop_nan))
