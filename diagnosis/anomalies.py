@@ -25,6 +25,7 @@ class AnomalyConfig:
     min_step: float = 0.7       # Nm, norm of the static torque change: the paper detector's lowest activation
     #                             threshold (App. A: 0.7-1.1 Nm)
     pose_share: float = 0.5     # a step counts if the pose explains less than this share of it (see steps())
+    max_span: float = 5.0       # s, the longest stretch two compared windows may span (a settling arm, not a drift)
 
 
 def rest_stretches(dq, dt: float, config: AnomalyConfig = AnomalyConfig()) -> list:
@@ -90,48 +91,53 @@ def _damped_sine(t, x, f0: float):
 
 def steps(t, r, q, dq, pose_torque, config: AnomalyConfig = AnomalyConfig()) -> list:
     """Where the static torque changes by a step the pose does not explain (a load put down or picked up), [{t [s],
-    size [Nm] (norm over joints), change (n,) [Nm], explained (share the pose change can explain)}].
+    size [Nm] (norm over joints), change (n,) [Nm], explained (share the pose change can explain), moved (the arm
+    moved between the two windows)}].
 
-    Hypotheses for a change d = mean(r after) - mean(r before) of the residual r (T, n), means over the rest samples
-    of window seconds on each side (guard seconds left out): the pose changed and an effect the model misses depends
-    on it (the change is at most what a plausible load and model error make between the two poses, pose_torque(q_a,
-    q_b) [Nm]), or the load changed (any change, at one pose as well). A step is a local maximum of |d| on a 10 ms grid
-    with |d| >= min_step that the pose explains less than pose_share of; its time, the centre of the change, is
-    refined to 1 ms: where the means of `window` seconds right before and after it differ most."""
+    Hypotheses for a change d = mean(r after) - mean(r before) of the residual r (T, n), means over `window` seconds
+    of rest samples on each side (the nearest ones, guard seconds left out, at most max_span apart: a load is often put
+    in the hand while the arm gives way): the pose changed and an effect the model misses depends on it (the change
+    is at most what a plausible load and model error make between the two poses, pose_torque(q_a, q_b) [Nm]), or the
+    load changed (any change, at one pose as well). A step is a local maximum of |d| on a 10 ms grid with
+    |d| >= min_step that the pose explains less than pose_share of; its time, the centre of the change, is refined
+    to 1 ms: where the means right before and after it differ most (window seconds at rest, 0.1 s across motion)."""
     dt = float(np.median(np.diff(t)))
     W, g = int(config.window / dt), int(config.guard / dt)
     still = np.all(np.abs(dq) < config.v_rest, axis=1).astype(float)
     cs = lambda x: np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])      # noqa: E731
     S_r, S_q, S_n = cs(r * still[:, None]), cs(q * still[:, None]), cs(still)
-
-    def mean(S, i, j):
-        return (S[j] - S[i]) / max(S_n[j] - S_n[i], 1.0)
-    grid = np.arange(W + g, len(t) - W - g, max(1, int(0.01 / dt)))
-    ok = np.array([min(S_n[k - g] - S_n[k - g - W], S_n[k + g + W] - S_n[k + g]) >= 0.9 * W for k in grid], bool)
-    d = np.array([mean(S_r, k + g, k + g + W) - mean(S_r, k - g - W, k - g) for k in grid]) if len(grid) else \
-        np.zeros((0, r.shape[1]))
-    size = np.where(ok, np.linalg.norm(d, axis=1), 0.0) if len(grid) else np.zeros(0)
+    grid = np.arange(g, len(t) - g, max(1, int(0.01 / dt)))
+    a, b = grid - g, grid + g                                      # the windows end at a and start at b
+    i0 = np.searchsorted(S_n, S_n[a] - W)                          # rows [i0, a) hold W rest samples
+    i1 = np.minimum(np.searchsorted(S_n, S_n[b] + W), len(t))      # rows [b, i1) hold W rest samples
+    ok = (S_n[a] >= W) & (S_n[-1] - S_n[b] >= W) & ((i1 - i0) * dt <= config.max_span)
+    d = ((S_r[i1] - S_r[b]) - (S_r[a] - S_r[i0])) / W              # (G, n)
+    size = np.where(ok, np.linalg.norm(d, axis=1), 0.0)
     found, taken = [], np.zeros(len(grid), bool)
     for i in np.argsort(-size):
         if size[i] < config.min_step:
             break
         if taken[i]:
             continue
-        taken[np.abs(grid - grid[i]) < 2 * (W + g)] = True            # every window that reaches this change
-        k = grid[i]
-        qa, qb = mean(S_q, k - g - W, k - g), mean(S_q, k + g, k + g + W)
+        taken[(grid >= i0[i] - W - g) & (grid < i1[i] + W + g)] = True  # every window that reaches this change
+        qa, qb = (S_q[a[i]] - S_q[i0[i]]) / W, (S_q[i1[i]] - S_q[b[i]]) / W
         explained = min(1.0, pose_torque(qa, qb) / size[i])
-        if explained < config.pose_share:
-            found.append(dict(t=float(t[_centre(r, k, W, g, dt)]), size=float(size[i]), change=d[i],
-                              explained=float(explained)))
+        if explained >= config.pose_share:
+            continue
+        lo = i0[i] + int(np.searchsorted(S_n[i0[i]:], S_n[a[i]], side="left"))   # the last rest row before: a
+        hi = b[i] + int(np.searchsorted(S_n[b[i]:], S_n[b[i]] + 1, side="left"))  # the first rest row after b
+        moved = bool((hi - lo) * dt > 2 * config.guard + 0.05)
+        h = int(0.1 / dt) if moved else W
+        found.append(dict(t=float(t[_centre(r, min(lo, a[i]), max(hi, b[i]), h)]), size=float(size[i]),
+                          change=d[i], explained=float(explained), moved=moved))
     return sorted(found, key=lambda s: s["t"])
 
 
-def _centre(r, k, W, g, dt):
-    """The row within W + g of k where the means of W rows before and after it differ most: the middle of the change
-    (a vibration cancels in W rows as it does in the detection)."""
-    lo, hi = max(W, k - W - g), min(len(r) - W, k + W + g)
+def _centre(r, lo, hi, h):
+    """The row in [lo, hi) where the means of h rows before and after it differ most: the middle of the change (a
+    vibration cancels in h rows as it does in the detection)."""
+    lo, hi = max(h, lo), min(len(r) - h, hi)
     cs = np.concatenate([np.zeros((1, r.shape[1])), np.cumsum(r, axis=0)])
-    rows = np.arange(lo, hi)
-    diff = (cs[rows + W] - cs[rows]) - (cs[rows] - cs[rows - W])
+    rows = np.arange(lo, max(hi, lo + 1))
+    diff = (cs[rows + h] - cs[rows]) - (cs[rows] - cs[rows - h])
     return int(rows[np.argmax(np.linalg.norm(diff, axis=1))])

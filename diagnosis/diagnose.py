@@ -157,8 +157,8 @@ def log_findings(log: Log, s, model: Model, before, d, config: AnomalyConfig = A
     bounds = [log.t[0]] + [x["t"] for x in found] + [log.t[-1]]
     for x in found:
         text.append(f"  step: the static torque changes by {x['size']:.2f} Nm at t = {x['t']:.3f} s (the pose "
-                    f"explains {100 * x['explained']:.0f} % of it): a load changed during the log; each segment is "
-                    "diagnosed on its own below")
+                    f"explains {100 * x['explained']:.0f} % of it{'; the arm moved meanwhile' if x['moved'] else ''}): "
+                    "a load changed during the log; each segment is diagnosed on its own below")
     for t0, t1 in zip(bounds[:-1], bounds[1:]) if found else ():
         rows = (log.t >= t0 + config.guard) & (log.t <= t1 - config.guard)
         seg = {"t0": float(t0), "t1": float(t1)}

@@ -142,4 +142,5 @@ def cleaning_summary(info: dict) -> str:
                  f"{1e3 * info['longest_gap']:.0f} ms at t = {info['gap_at']:.3f} s)")
     else:
         text += "no gaps in the time stamps"
-    return text + (", all filled in by linear interpolation" if info.get("resampled") else "")
+    filled = "the dropped rows and missing cycles" if info.get("gaps") else "the dropped rows"
+    return text + (f"; {filled} filled in by linear interpolation" if info.get("resampled") else "")

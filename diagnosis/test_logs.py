@@ -258,4 +258,4 @@ def test_missing_cycles_and_malformed_rows_are_counted_and_said(tmp_path, capsys
     assert (log.info["gaps"], log.info["missing_cycles"], log.info["bad_rows"]) == (1, 40, 1)
     text = cleaning_summary(log.info)
     assert "1 malformed (file lines 2)" in text and "40 missing cycles in 1 gaps" in text, text
-    assert "longest 41 ms at t = 1.999 s" in text and "filled in by linear interpolation" in text, text
+    assert "longest 41 ms at t = 1.999 s" in text and "missing cycles filled in by linear interpolation" in text, text
