@@ -193,7 +193,7 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
     for ix in bodies:                                              # eigenvalues raised to a margin above zero
         w, Q = np.linalg.eigh(pseudo_inertia(c_u[ix]))
         u[ix] = d[ix] * body_params((Q * np.maximum(w, 1e-3 * max(w.max(), 1e-9))) @ Q.T)
-    margin = 1e-3 * (np.abs(u) + 1e-6 * (1 + np.abs(u).max()))
+    margin = np.minimum(1e-3 * (np.abs(u) + 1e-6 * (1 + np.abs(u).max())), 0.25 * (hi - lo))   # inside a narrow box
     u = np.where(has_lo, np.maximum(u, lo + margin), u)
     u = np.where(has_hi, np.minimum(u, hi - margin), u)
     for ix, rho in cones:                                          # m c shrunk inside the cone (keeps J > 0)
@@ -239,6 +239,8 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
             np.where(has_hi, 1 / np.where(has_hi, b, 1) ** 2, 0)
         return phi, g, Hb
 
+    if not np.isfinite(barrier(u, need=0)[0]):          # clamped into a box, a body lost its positive definiteness
+        u = _interior(u, d, lo, hi, bodies, cones)
     obj = lambda u: 0.5 * u @ H @ u - f @ u                                # noqa: E731
     f_u = obj(d * c_u)
     t = m / max(obj(u) - f_u, 1e-300)
@@ -259,11 +261,31 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
                 if np.isfinite(val) and t * obj(cand) + val <= now - 0.25 * alpha * dec:
                     break
                 alpha *= 0.5
+            if alpha <= 1e-12:
+                break                           # no feasible descent left at this t (rounding): stay inside
             u = u + alpha * du
         if m / t <= gap * max(abs(f_u), 1e-300):
             break
         t *= 10.0
     return u / d, f"barrier: {steps} Newton steps, duality gap <= {m / t:.2g}"
+
+
+def _interior(u, d, lo, hi, bodies, cones):
+    """u with every rigid body and payload cone moved to a strictly feasible point of its bounds: the mass inside its
+    bounds, the CoM at the origin and, for a body, an inertia of a sphere of 0.1 m radius about it (0.01 m kg^2/kg,
+    isotropic: pseudo-inertia positive definite)."""
+    u = u.copy()
+    for ix in [ix for ix in bodies] + [ix for ix, _ in cones]:
+        i0 = ix[0]
+        m_lo = lo[i0] / d[i0] if np.isfinite(lo[i0]) else 0.0
+        m_hi = hi[i0] / d[i0] if np.isfinite(hi[i0]) else max(u[i0] / d[i0], 1.0)
+        m = float(np.clip(u[i0] / d[i0], m_lo + 0.25 * (m_hi - m_lo), m_lo + 0.75 * (m_hi - m_lo)))
+        c = np.zeros(len(ix))
+        c[0] = m
+        if len(ix) == 10:
+            c[[4, 6, 9]] = 0.01 * m                                   # Ixx, Iyy, Izz (pinocchio's order)
+        u[ix] = d[ix] * c
+    return u
 
 
 def _solve_mapped(R, e, d, lo, hi, segs, c_u, info):
