@@ -1,253 +1,28 @@
 """Compare a robot model with a log, find the missing physical effect, add it, watch the error fall (the
 nominal Eq. 1 model and the effects of effects.py; held-out forward selection). CLI: `python rme.py diagnose LOG
-[--add EFFECT ...] [--json] [--plot FILE]`; `python sim.py hidden-effect` for the demo."""
+[--add EFFECT ...] [--json] [--plot FILE] [--save F]`; `python sim.py hidden-effect` for the demo."""
 from __future__ import annotations
 
 import argparse
 import importlib.util
 import json
+import os
 import sys
-from dataclasses import dataclass, field
+
 
 import numpy as np
 
 from dynamics import Robot
+from diagnosis.anomalies import AnomalyConfig, oscillation, steps
+from diagnosis.compare import CompareConfig, Comparison, compare, fit_percent  # noqa: F401 (the package's API)
 from diagnosis.effect_model import Model
 from diagnosis.effects import EffectConfig
-from diagnosis.figure import plot  # noqa: F401  (diagnose's figure; demos import it from here)
-from diagnosis.findings import collect, format_findings
-from diagnosis.heldout import Selection, blocks_of, rank
+from diagnosis.forward import DiagnoseConfig, Diagnosis, diagnose, heldout_rms  # noqa: F401
 from diagnosis.logs import Log, LogConfig, load_log
+from diagnosis.figure import plot  # noqa: F401  (diagnose's figure; demos import it from here)
+from diagnosis.report import _jsonable, cleaning_summary, format_comparison, format_diagnosis  # noqa: F401
 
 
-@dataclass(frozen=True)
-class CompareConfig:
-    """Regimes and segments in which compare() splits the error."""
-    v_rest: float = 0.02        # rad/s, |dq| below: at rest (20x the 1e-3 rad/s velocity noise of realistic())
-    v_sign: float = 0.1         # rad/s, |dq| above: a clear sign of dq (the 0.05 s filter x 2 rad/s^2 smears 0.1 rad/s)
-    v_fast: float = 0.5         # rad/s, |dq| above: fast (a quarter of the Panda's 2.2-2.6 rad/s limits)
-    a_acc: float = 2.0          # rad/s^2, |ddq| above: accelerating (10-25 % of the 7.5-20 rad/s^2 limits)
-    segment: float = 0.5        # s, length of the time segments ranked by error
-    worst: int = 3              # how many worst segments to report
-
-
-@dataclass(frozen=True)
-class DiagnoseConfig:
-    """Held-out forward selection (see diagnose)."""
-    block: float = 0.5          # s, interleaved hold-out blocks: >> the 0.05 s filter window, << the motion's periods
-    min_drop: float = 0.10      # an effect must cut the held-out RMS of some joint by >= 10 % ...
-    t_min: float = 3.0          # ... with t >= 3 for the per-block log error ratios (one-sided p < 0.01) ...
-    min_torque: float = 0.01    # Nm, ... explaining >= 0.01 Nm RMS there: half the Panda's 0.02 Nm torque resolution
-    min_total_drop: float = 0.01  # and cut the RMS of the summed held-out error by >= 1 % with t >= t_min (not 10 %:
-                                  # an effect of a wrist joint is small beside the shoulders' error in the sum) ...
-    max_rise: float = 0.05      # ... and raise no joint's held-out RMS by >= 5 % with t >= t_min
-    max_add: int = 6            # forward-selection steps at most
-    min_blocks: int = 6         # fewer hold-out blocks: the log is too short to diagnose
-
-
-@dataclass
-class Comparison:
-    """compare() output: per joint (n,) rms [Nm], fit [%] (100 (1 - NRMSE) of tau_J), mean [Nm]; regimes: name ->
-    {rms, mean, share} (n,) each; worst: [{t0, t1, rms, joint}]; residual (T, n) = tau_J - model; t (T,)."""
-    rms: np.ndarray
-    fit: np.ndarray
-    mean: np.ndarray
-    regimes: dict
-    worst: list
-    residual: np.ndarray
-    t: np.ndarray
-
-
-def compare(model: Model, log, config: CompareConfig = CompareConfig()) -> Comparison:
-    """Where the model fails on the log: per-joint RMS and fit, the worst time segments, the error by regime."""
-    s = model.signals(log)
-    y = s.measured()
-    r = y - model.predict(s)
-    rms = np.sqrt(np.mean(r ** 2, axis=0))
-    fit = 100 * (1 - np.linalg.norm(r, axis=0) / np.maximum(np.linalg.norm(y - y.mean(axis=0), axis=0), 1e-300))
-    adq, addq = np.abs(s.dq), np.abs(s.ddq)
-    masks = {"at rest": adq < config.v_rest, "moving": adq >= config.v_rest, "fast": adq >= config.v_fast,
-             "accelerating": addq >= config.a_acc, "dq > 0": s.dq >= config.v_sign, "dq < 0": s.dq <= -config.v_sign}
-    regimes = {}
-    for name, m in masks.items():
-        cnt = m.sum(axis=0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            regimes[name] = {"rms": np.sqrt((r ** 2 * m).sum(axis=0) / cnt), "mean": (r * m).sum(axis=0) / cnt,
-                             "share": cnt / len(r)}
-    seg = blocks_of(s.t, config.segment)
-    seg_rms = np.sqrt(np.stack([np.mean(r[seg == b] ** 2, axis=0) for b in range(seg.max() + 1)]))   # (S, n)
-    score = (seg_rms / np.maximum(rms, 1e-12)).mean(axis=1)          # each joint relative to its own RMS
-    worst = []
-    for b in np.argsort(-score)[:config.worst]:
-        rows = np.flatnonzero(seg == b)
-        j = int(np.argmax(seg_rms[b] / np.maximum(rms, 1e-12)))
-        worst.append({"t0": float(s.t[rows[0]]), "t1": float(s.t[rows[-1]]), "joint": j + 1,
-                      "rms": float(seg_rms[b, j]), "ratio": float(score[b])})
-    return Comparison(rms, fit, r.mean(axis=0), regimes, worst, r, s.t)
-
-
-@dataclass
-class Diagnosis:
-    """diagnose() output. rms (n,): held-out RMS of the input model; ranking: the first round's candidates, best first,
-    each {effect, k, explained, explained_joints, joints (improved), worse (joints made worse), significant, rms_after,
-    rms_change (n,) = rms_after / rms_before - 1, total_change, total_t, drop, t, params}; steps: the forward
-    selection, each {effect, rms_before, rms_after, rms_change, explained, joints, params}; selected: effect names;
-    model: the input model plus the selected effects, fitted on the whole log; stop: why selection ended; findings:
-    what the data asked of an effect beyond its physical constraints, [{effect, text, joints, violations}]."""
-    rms: np.ndarray
-    ranking: list
-    steps: list
-    selected: list
-    model: Model
-    stop: str
-    samples: int = 0
-    info: dict = field(default_factory=dict)
-    findings: list = field(default_factory=list)
-
-
-def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = DiagnoseConfig()) -> Diagnosis:
-    """Rank the candidate effects (default: the library's effects not in the model) by how much of the model's
-    residual each explains on held-out data, then add the best and repeat while the gain is significant.
-
-    Hold-out: the log is cut into interleaved blocks of config.block seconds; each effect set is fitted on the even
-    blocks and scored on the odd ones, and vice versa (2-fold), so both halves see the same motions and an effect
-    cannot win by fitting noise. Significant (heldout.verdict), all three of: (a) the held-out error falls overall: the
-    RMS of the summed SSE over all joints drops by >= min_total_drop with t >= t_min for the per-block log ratios of the
-    totals; (b) no joint gets worse: no joint's held-out RMS rises by >= max_rise with t >= t_min for its per-block
-    log ratios log(sse_after / sse_before); (c) on at least one joint the held-out RMS drops by >= min_drop AND the
-    per-block log error ratios log(sse_before / sse_after) have t >= t_min AND the torque explained there is
-    >= min_torque RMS. So the selection cannot trade one joint's error for another's. Parsimony: a significant
-    candidate with fewer parameters is preferred unless the better-scoring one is significantly better than it on some
-    joint by rule (c) (e.g. coulomb over sigmoid, payload over rigid_payload on a quasi-static log). Every fit keeps
-    to the effects' physical constraints; where the unconstrained fit of a candidate breaks them and scores
-    significantly better for it, that is a finding (findings.py). Candidates: Effect objects or library names."""
-    s = model.signals(log)
-    y = s.measured() - model.torque(s, [e for e in model.effects if e.name in model.fixed])
-    block = blocks_of(s.t, config.block)
-    if block.max() + 1 < config.min_blocks:
-        raise ValueError(f"log: too short to diagnose: {block.max() + 1} hold-out blocks of {config.block} s, "
-                         f"expected at least {config.min_blocks} ({config.min_blocks * config.block} s)")
-    cands = [model.effect(c) for c in candidates] if candidates is not None else \
-        [e for e in model.library.values() if e.name not in model.names]
-    clash = [c.name for c in cands if c.name in model.names]
-    if clash:
-        raise ValueError(f"candidates: expected effects not yet in the model, found {clash} (in {model.names})")
-    sel = Selection(s, y, block, config)
-    for e in model.free:
-        sel.extend(e)
-    rms0 = np.sqrt(sel.sse.sum(axis=0) / len(s))
-    ranking, steps, stop, asked = _forward_selection(sel, cands, config)
-    final = model.copy()
-    for st in steps:
-        final.add(st["obj"])
-    if final.free:
-        final.fit(s)
-    selected = [st["effect"] for st in steps]
-    return Diagnosis(rms0, ranking, steps, selected, final, stop, len(s),
-                     {"blocks": int(block.max() + 1), "block_s": config.block}, collect(asked, selected))
-
-
-def _forward_selection(sel: Selection, cands: list, config: DiagnoseConfig):
-    """Add the top-ranked significant candidate while there is one: (first round's ranking, steps, stop reason, what
-    the data asked of each effect beyond its constraints when it was last tried {effect: asked})."""
-    N, ranking, steps, asked = len(sel.s), None, [], {}
-    for _ in range(config.max_add):
-        if not cands:
-            return ranking or [], steps, "no candidate effects left", asked
-        order = rank([sel.try_effect(c) for c in cands], config, N)
-        for r in order:
-            asked.pop(r["effect"], None)
-            if r["asked"]:
-                asked[r["effect"]] = r["asked"]
-        ranking = order if ranking is None else ranking
-        top = order[0]
-        if not top["significant"]:
-            j = int(np.argmax(top["drop"]))
-            stop = (f"no remaining effect is significant (best: {top['effect']}, held-out RMS drop "
-                    f"{100 * top['drop'][j]:.1f} % on J{j + 1}, t = {top['t'][j]:.1f}; total "
-                    f"{100 * top['total_change']:+.1f} %, t = {top['total_t']:.1f}; "
-                    f"worse on joints {top['worse'] or '-'})")
-            return ranking, steps, stop, asked
-        steps.append(dict(effect=top["effect"], obj=top["obj"], rms_before=np.sqrt(sel.sse.sum(axis=0) / N),
-                          rms_after=top["rms_after"], rms_change=top["rms_change"], explained=top["explained"],
-                          joints=top["joints"], params=top["params"]))
-        sel.accept(top)
-        cands = [c for c in cands if c.name != top["effect"]]
-    return ranking, steps, f"stopped after max_add = {config.max_add} steps", asked
-
-
-def heldout_rms(model: Model, log, config: DiagnoseConfig = DiagnoseConfig()) -> np.ndarray:
-    """Per-joint RMS (n,) of the model's residual on held-out blocks (its free effects refitted per fold)."""
-    s = model.signals(log)
-    y = s.measured() - model.torque(s, [e for e in model.effects if e.name in model.fixed])
-    sel = Selection(s, y, blocks_of(s.t, config.block), config)
-    for e in model.free:
-        sel.extend(e)
-    return np.sqrt(sel.sse.sum(axis=0) / len(s))
-
-
-# --- text --------------------------------------------------------------------------------------------
-def _row(label, values, fmt="{:8.3f}"):
-    return f"  {label:26s}" + "".join(fmt.format(v) for v in values)
-
-
-def format_comparison(c: Comparison) -> str:
-    """compare() as a table: joints across, error measures and regimes down."""
-    n = len(c.rms)
-    lines = [_row("per joint", [f"J{j + 1}" for j in range(n)], "{:>8s}"), _row("RMS error [Nm]", c.rms),
-             _row("fit [%] (100 (1 - NRMSE))", c.fit, "{:8.1f}"), _row("mean error [Nm]", c.mean),
-             "  RMS error by regime [Nm] (share of samples in brackets on the right):"]
-    for name, r in c.regimes.items():
-        lines.append(_row(f"  {name}", r["rms"]) + f"   ({100 * np.nanmean(r['share']):.0f} %)")
-    for name in ("dq > 0", "dq < 0"):
-        lines.append(_row(f"  mean error, {name}", c.regimes[name]["mean"]))
-    worst = "; ".join(f"{w['t0']:.2f}-{w['t1']:.2f} s (J{w['joint']} {w['rms']:.3f} Nm, {w['ratio']:.1f}x its RMS)"
-                      for w in c.worst)
-    return "\n".join(lines + [f"  worst segments: {worst}"])
-
-
-def format_diagnosis(d: Diagnosis, config: DiagnoseConfig = DiagnoseConfig()) -> str:
-    """diagnose() as the ranking table, the forward-selection steps and the fitted model."""
-    n = len(d.rms)
-    lines = [f"  held-out: 2-fold over {d.info['blocks']} interleaved blocks of {d.info['block_s']} s; significant = "
-             f"(a) RMS of the summed error over all joints drops >= {100 * config.min_total_drop:.0f} % with t >= "
-             f"{config.t_min} over blocks, (b) no joint's RMS rises >= {100 * config.max_rise:.0f} % with t >= "
-             f"{config.t_min}, (c) RMS drop >= {100 * config.min_drop:.0f} % on a joint with t >= {config.t_min} "
-             f"and >= {config.min_torque} Nm RMS explained",
-             f"  {'rank':4s} {'effect':14s} {'params':>6s} {'explained':>9s}  {'joints':14s} held-out RMS after [Nm]",
-             f"  {'':4s} {'':14s} {'':6s} {'total':>9s}  {'worse':14s} held-out RMS change [%] (negative = better)"]
-    for i, r in enumerate(d.ranking):
-        joints, worse = " ".join(map(str, r["joints"])) or "-", " ".join(map(str, r["worse"])) or "-"
-        lines.append(f"  {i + 1:4d} {r['effect']:14s} {r['k']:6d} {100 * r['explained']:8.1f}%  {joints:14s} "
-                     + " ".join(f"{v:.3f}" for v in r["rms_after"]))
-        lines.append(f"  {'':4s} {'':14s} {'':6s} {100 * r['total_change']:+8.1f}%  {worse:14s} "
-                     + " ".join(f"{100 * v:+.1f}" for v in r["rms_change"]))
-    lines.append(f"  forward selection, held-out RMS per joint [Nm], J1..J{n}:")
-    lines.append("    start       " + " ".join(f"{v:.3f}" for v in d.rms))
-    for st in d.steps:
-        lines.append(f"    + {st['effect']:9s} " + " ".join(f"{v:.3f}" for v in st["rms_after"])
-                     + f"   ({100 * st['explained']:.1f} % of the rest explained, joints {st['joints']})")
-    lines.append(f"    stop: {d.stop}")
-    if not d.steps:
-        lines.append("  nothing missing: no candidate effect explains a significant part of the residual")
-    lines += format_findings(d.findings)
-    lines += ["  model after selection (fitted on the whole log):", d.model.report()]
-    return "\n".join(lines)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return [_jsonable(v) for v in x.tolist()]
-    if isinstance(x, (float, np.floating)):
-        return None if not np.isfinite(x) else round(float(x), 6)
-    return x.item() if isinstance(x, np.generic) else x
-
-
-# --- CLI ---------------------------------------------------------------------------------------------
 def main(argv=None, prog: str = "rme.py diagnose") -> int:
     """`diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]`: compare -> diagnose -> (add -> compare). Returns the
     exit status (0 ok, 2 bad input); prog names the command in --help (e.g. "rme.py diagnose")."""
@@ -268,10 +43,17 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     p.add_argument("--bias-map", action="store_true", help="offer pose_bias, the per-joint map of the load-free "
                    "torque over the pose (opt-in: it absorbs any static error); fit it on a log of still holds")
     p.add_argument("--save", metavar="MODEL.json", help="save the model after --add (Model.load reads it; "
-                   "RME(correction=Model.load(path)) uses it)")
+                   "RME(correction=Model.load(path)) uses it); refused if a parameter is held at a bound")
+    p.add_argument("--force", action="store_true", help="--save even a model with parameters held at their bounds")
     args = p.parse_args(argv)
     if args.log is None:
         p.error("a LOG file is needed")
+    for flag, path in (("--save", args.save), ("--plot", args.plot)):
+        folder = os.path.dirname(os.path.abspath(path)) if path else None
+        if folder and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
+            print(f"error: {flag}: expected a writable folder for {path!r}, found no such folder" if not
+                  os.path.isdir(folder) else f"error: {flag}: the folder of {path!r} is not writable", file=sys.stderr)
+            return 2
     if args.plot and importlib.util.find_spec("matplotlib") is None:
         print("error: --plot needs matplotlib, which is not installed (pip install matplotlib)", file=sys.stderr)
         return 2
@@ -285,12 +67,12 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
         bias_map = args.bias_map or "pose_bias" in args.add
         out = run(log, args.add, args.model, robot, EffectConfig(bias_joints=robot.n) if bias_map else EffectConfig())
         if args.save:
-            out["added"].save(args.save)
-    except ValueError as err:
+            _save(out["added"], args.save, args.force)
+        if args.plot:
+            plot(args.plot, out)
+    except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    if args.plot:
-        plot(args.plot, out)
     if args.json:
         print(json.dumps(_jsonable(out["json"])))
     else:
@@ -298,8 +80,19 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     return 0
 
 
+def _save(model: Model, path: str, force: bool):
+    """model.save(path), refused (ValueError) while a parameter is held at a bound of the fit, unless force."""
+    held = {e: [lbl for lbl, _ in v] for e, v in model.violations.items() if v}
+    if held and not force:
+        what = "; ".join(f"{e}: {', '.join(v)}" for e, v in held.items())
+        raise ValueError(f"--save: the fit holds parameters at their physical bounds ({what}); the data asked for "
+                         "more than a physical model gives (see the findings). Not saved; --force saves it anyway")
+    model.save(path)
+
+
 def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, config=EffectConfig()) -> dict:
-    """compare -> diagnose -> add -> compare on a loaded log; the text report, the JSON object and the pieces."""
+    """compare -> diagnose -> add -> compare on a loaded log, and what the log holds that is no effect (a vibration,
+    a step: each segment between steps diagnosed too); the text report, the JSON object and the pieces."""
     robot = robot or Robot.panda()
     model = Model.nominal(robot, config) if start == "nominal" else Model.static(robot, config)
     s = model.signals(log)                         # the log's rigid-body terms, computed once
@@ -307,17 +100,22 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
     d = diagnose(model, s)
     i = log.info
     text = [f"log {i.get('source')}: {len(log)} samples, {log.t[-1] - log.t[0]:.2f} s at dt = {i.get('dt', 0):.4g} s; "
-            f"{i.get('stale_rows', 0)} stale rows and {i.get('nan_rows', 0)} NaN rows dropped; "
-            f"filter: {i.get('filter')}",
+            f"{cleaning_summary(i)}; filter: {i.get('filter')}",
             f"compare: {start} model ({' + '.join(model.names)}), residual = tau_J - model = -tau_ext (paper sign)",
             format_comparison(before), "diagnose:", format_diagnosis(d)]
     js = {"log": i.get("source"), "samples": len(log), "stale_rows": i.get("stale_rows"), "nan_rows": i.get("nan_rows"),
-          "model": model.names, "rms": before.rms, "fit_percent": before.fit, "rms_heldout": d.rms,
+          "bad_rows": i.get("bad_rows", 0), "gaps": i.get("gaps", 0), "missing_cycles": i.get("missing_cycles", 0),
+          "longest_gap_s": i.get("longest_gap", 0.0),
+          "model": model.names, "rms": before.rms, "fit_percent": before.fit, "fit_undefined": before.fit_note,
+          "rms_heldout": d.rms, "excitation": d.info.get("excitation"),
           "ranking": [{"effect": r["effect"], "explained": r["explained"], "joints": r["joints"],
                        "significant": r["significant"], "rms_after": r["rms_after"], "worse_joints": r["worse"],
                        "rms_change_percent": 100 * r["rms_change"], "total_change_percent": 100 * r["total_change"]}
                       for r in d.ranking],
           "selected": d.selected, "stop": d.stop, "findings": d.findings}
+    extra = log_findings(log, s, model, before, d)
+    text += extra["text"]
+    js.update(vibration=extra["vibration"], steps=extra["steps"], segments=extra["segments"])
     out = {"model": model, "before": before, "diagnosis": d, "log": log}
     if add:
         added = model.copy()
@@ -329,13 +127,55 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
         text += [] if "auto" in add else [added.report()]
         text += [format_comparison(after),
                  "  held-out RMS [Nm]  " + " ".join(f"{v:.3f}" for v in held)]
-        js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit, "rms_heldout": held,
+        js["after"] = {"effects": added.names, "rms": after.rms, "fit_percent": after.fit,
+                       "fit_undefined": after.fit_note, "rms_heldout": held,
                        "params": {e.name: added.params[e.name] for e in added.free},
                        "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl},
-                       "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()}}
+                       "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()},
+                       "not_identified": added.held}
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)
     return out
+
+
+def log_findings(log: Log, s, model: Model, before, d, config: AnomalyConfig = AnomalyConfig()) -> dict:
+    """The vibration of the residual left after selection, the steps of the starting model's residual the pose does
+    not explain, and a diagnosis of each segment between steps: {vibration, steps, segments, text (lines)}."""
+    robot, c = model.robot, model.config
+    r = d.model.residual(s) if d.model.free else before.residual
+    vib = oscillation(log.t, r, log.dq, config)
+    reach = float(np.hypot(c.max_mass, c.max_mass * c.max_com))            # |phi| of the largest plausible load
+
+    def pose_torque(qa, qb):
+        dY = robot.payload_regressor(qb) - robot.payload_regressor(qa)
+        return np.linalg.norm(dY, 2) * reach + c.scale_max / 20 * np.linalg.norm(robot.gravity(qb) - robot.gravity(qa))
+    found = steps(log.t, before.residual, log.q, log.dq, pose_torque, config)
+    text, segs = [], []
+    if vib:
+        text.append(f"  vibration: {vib['frequency']:.2f} Hz, damping ratio {vib['damping']:.3f} (decay "
+                    f"{vib['decay']:.2f} 1/s), {vib['amplitude']:.3f} Nm on J{vib['joint']} from t = {vib['t0']:.2f} s "
+                    f"(joints {vib['joints']}): a flexible or loosely held load vibrating at rest; no effect of the "
+                    "model is a vibration, so it stays in the residual (hold still longer, or stiffen the grasp)")
+    bounds = [log.t[0]] + [x["t"] for x in found] + [log.t[-1]]
+    for x in found:
+        text.append(f"  step: the static torque changes by {x['size']:.2f} Nm at t = {x['t']:.3f} s (the pose "
+                    f"explains {100 * x['explained']:.0f} % of it{'; the arm moved meanwhile' if x['moved'] else ''}): "
+                    "a load changed during the log; each segment is diagnosed on its own below")
+    for t0, t1 in zip(bounds[:-1], bounds[1:]) if found else ():
+        rows = (log.t >= t0 + config.guard) & (log.t <= t1 - config.guard)
+        seg = {"t0": float(t0), "t1": float(t1)}
+        try:
+            part = diagnose(model, log.rows(rows))
+            seg.update(selected=part.selected, stop=part.stop, model=part.model.report(),
+                       findings=[f["text"] for f in part.findings])
+            text.append(f"  segment {t0:.2f}-{t1:.2f} s: selected {part.selected or 'nothing'}; {part.stop}")
+            text += [f"      {line.strip()}" for line in part.model.report().splitlines()[len(model.names):]]
+        except ValueError as err:
+            seg.update(error=str(err))
+            text.append(f"  segment {t0:.2f}-{t1:.2f} s: not diagnosed: {err}")
+        segs.append(seg)
+    return {"vibration": vib, "steps": found, "segments": segs,
+            "text": (["findings on the log (not effects of the model):"] + text) if text else []}
 
 
 if __name__ == "__main__":

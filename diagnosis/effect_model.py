@@ -6,14 +6,16 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import os
 
 import numpy as np
 
 from diagnosis.batch_dynamics import BatchDynamics
 from diagnosis.effects import Effect, EffectConfig, Signals, library, segments
+from diagnosis.identify import IdentifyConfig, conditional, information, weights
 from diagnosis.logs import Log
 from diagnosis.physical import solve, solve_physical
-from dynamics import Robot, as_states
+from dynamics import PANDA_XML, Robot, as_states
 
 __all__ = ["Model", "solve", "solve_physical"]
 
@@ -23,12 +25,15 @@ class Model:
     motion terms, scale 1); free ones are fitted by fit(log). The residual tau_J - model is, for the nominal model,
     -tau_ext in the paper's sign (= libfranka's tau_ext_hat_filtered)."""
 
-    def __init__(self, robot: Robot, config: EffectConfig = EffectConfig()):
-        self.robot, self.config = robot, config
+    def __init__(self, robot: Robot, config: EffectConfig = EffectConfig(),
+                 identify: IdentifyConfig | None = IdentifyConfig()):
+        self.robot, self.config, self.identify = robot, config, identify
         self.library = library(config)
         self.effects, self.params, self.nl, self.fixed = [], {}, {}, set()
         self.fitted, self._batch = False, None
         self.violations = {}                 # effect -> [(label, value)] the unconstrained fit asked for (last fit)
+        self.held = {}                       # effect -> {directions, params, info}: what the log could not identify
+        #                                      (held at the nominal value; identify.py), last fit
 
     @classmethod
     def nominal(cls, robot: Robot, config: EffectConfig = EffectConfig()) -> "Model":
@@ -43,7 +48,7 @@ class Model:
     def copy(self) -> "Model":
         new = copy.copy(self)
         new.effects, new.params, new.nl = list(self.effects), dict(self.params), dict(self.nl)
-        new.fixed, new.violations = set(self.fixed), dict(self.violations)
+        new.fixed, new.violations, new.held = set(self.fixed), dict(self.violations), dict(self.held)
         return new
 
     def effect(self, e) -> Effect:
@@ -58,12 +63,11 @@ class Model:
         e = self.effect(effect)
         if e.name in self.names:
             raise ValueError(f"effect: {e.name!r} is already in the model ({self.names})")
+        p = None if fixed is None else \
+            e.check("fixed", np.ravel(fixed) if isinstance(fixed, np.ndarray) else fixed, self.robot.n)
         self.effects.append(e)
         n = self.robot.n
-        if fixed is not None:
-            p = np.asarray(fixed, dtype=float).reshape(-1)
-            if p.shape != (e.size(n),):
-                raise ValueError(f"fixed: expected {e.size(n)} parameters for {e.name!r}, found {p.shape[0]}")
+        if p is not None:
             self.params[e.name], self.fixed = p, self.fixed | {e.name}
         else:
             self.params[e.name] = np.full(e.size(n), e.nominal)
@@ -102,8 +106,16 @@ class Model:
         unconstrained fit asked for beyond them is left in self.violations). Returns info {status, rank, K,
         iterations, constrained, violations}."""
         s = self.signals(log)
-        idx = np.arange(len(s)) if rows is None else np.arange(len(s))[rows]
+        try:
+            idx = np.arange(len(s)) if rows is None else np.arange(len(s))[rows]
+        except IndexError as err:
+            raise ValueError(f"rows: expected a slice, boolean mask or indices into the {len(s)} samples, found "
+                             f"{err}") from None
         free = self.free
+        k = sum(e.size(self.robot.n) for e in free)
+        if free and len(idx) * self.robot.n < max(k, 1) or free and len(idx) < 2:
+            raise ValueError(f"rows: expected enough samples to fit {k} parameters of {[e.name for e in free]}, "
+                             f"found {len(idx)} rows")
         y = (s.measured() - self.torque(s, [e for e in self.effects if e.name in self.fixed]))[idx]
         nonlinear = [e for e in free if e.nonlinear]
         info = self._fit_linear(s, y, free, idx)
@@ -122,13 +134,43 @@ class Model:
         if not blocks:
             return {"status": "ok", "rank": 0, "K": 0, "constrained": False, "violations": {}}
         A = np.concatenate(blocks, axis=2).reshape(-1, sum(Y.shape[2] for Y in blocks))
-        _, info = solve_physical(A.T @ A, A.T @ y.reshape(-1), segments(free, self.robot.n, self.robot.g))
+        G, b = A.T @ A, A.T @ y.reshape(-1)
+        if self.identify is not None:
+            G, b, self.held = self._hold_unidentified(G, b, blocks, free, s.t[idx], s.q[idx], s.dq[idx])
+        _, info = solve_physical(G, b, segments(free, self.robot.n, self.robot.g))
         for e, p in zip(free, info.pop("params")):
             self.params[e.name] = p
         self.violations = info["violations"]
         info["status"] = "ok" if info["rank"] == info["K"] else \
             f"rank deficient: {info['K'] - info['rank']} parameter combinations not identifiable (set to 0)"
         return info
+
+    def _hold_unidentified(self, G, b, blocks, free, t, q, dq):
+        """G, b (K, K), (K,) with every direction the log cannot identify held at the nominal value (identify.py):
+        effect by effect in the model's order, the directions of its parameters (at their plausible scales) whose
+        information, once the effects before it are fitted too, is below min_info; held by a penalty 1e4 times the
+        largest information. Returns (G, b, held {effect: {directions, of, params, info}})."""
+        n, g = self.robot.n, self.robot.g
+        scales = [e.column_scales(n, g) for e in free]
+        M = information(blocks, scales, weights(t, q, dq, self.identify))
+        S = np.nan_to_num(np.concatenate(scales), nan=1.0)
+        mu = 1e4 * max(np.linalg.eigvalsh(G * np.outer(S, S)).max(), 1e-300)
+        off = np.cumsum([0] + [len(c) for c in scales])
+        P, nominal, held = np.zeros_like(G), np.zeros(len(b)), {}
+        for i, e in enumerate(free):
+            nominal[off[i]:off[i + 1]] = 0.0 if e.physical == "tilt" else e.nominal
+            if np.all(np.isnan(scales[i])):
+                continue                                 # no plausible scale (a custom effect): fitted as it is
+            lam, V = conditional(M[:off[i + 1], :off[i + 1]], slice(off[i], off[i + 1]))
+            U = V[:, lam < self.identify.min_info]
+            if U.shape[1]:
+                Q = U / S[off[i]:off[i + 1], None]                      # directions in the effect's own units
+                P[off[i]:off[i + 1], off[i]:off[i + 1]] += Q @ Q.T
+                labels = e.labels(n) if e.physical != "tilt" else ("dg_x", "dg_y", "dg_z")
+                main = sorted({labels[j] for u in U.T for j in np.flatnonzero(np.abs(u) >= 0.3 * np.abs(u).max())})
+                held[e.name] = {"directions": int(U.shape[1]), "of": int(len(lam)), "params": main,
+                                "info": float(lam[lam < self.identify.min_info].max())}
+        return G + mu * P, b + mu * P @ nominal, held
 
     def predict(self, log) -> np.ndarray:
         """Model torque tau_J (T, n) for a log."""
@@ -169,6 +211,10 @@ class Model:
             tag = "fixed" if e.name in self.fixed else ("fitted" if self.fitted else "not fitted")
             text = e.describe(self.params[e.name], self.nl.get(e.name), self.robot.n)
             lines.append(f"  {e.name:14s} ({tag}): {text}")
+            if self.held.get(e.name):
+                h = self.held[e.name]
+                lines.append(f"  {'':14s} not identifiable from this log, held at the nominal value: {h['directions']} "
+                             f"of {h['of']} parameter directions (mainly {', '.join(h['params'])})")
             if self.violations.get(e.name):
                 asked = ", ".join(f"{k} {v:.4g}" for k, v in self.violations[e.name])
                 lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: {asked}")
@@ -176,12 +222,19 @@ class Model:
 
     def save(self, path) -> None:
         """Write the model as JSON: every effect with its parameters (nonlinear ones included), fixed or fitted, the
-        arm's MJCF path and ee site. Only library effects can be saved (a custom one is code: rebuild it)."""
+        arm by name ("panda") or by its MJCF path relative to the model file, and its ee site. Only library effects
+        can be saved (a custom one is code: rebuild it)."""
         unknown = [e.name for e in self.effects if e.name not in self.library or self.library[e.name] is not e]
         if unknown:
             raise ValueError(f"model: custom effects {unknown} cannot be saved (only library effects can)")
-        doc = {"format": "rme effect model", "version": 1,
-               "robot": {"xml": getattr(self.robot, "xml_path", None), "ee": self.robot.ee, "n": self.robot.n},
+        xml = getattr(self.robot, "xml_path", None)
+        if xml and os.path.abspath(xml) == os.path.abspath(PANDA_XML) and self.robot.ee == "ee":
+            arm = {"name": "panda"}
+        elif xml:
+            arm = {"xml": os.path.relpath(os.path.abspath(xml), os.path.dirname(os.path.abspath(path)))}
+        else:
+            raise ValueError("model: the robot has no MJCF file (Robot.from_xml) to name in the saved model")
+        doc = {"format": FORMAT, "version": 1, "robot": {**arm, "ee": self.robot.ee, "n": self.robot.n},
                "fitted": self.fitted, "config": dataclasses.asdict(self.config),
                "effects": [{"name": e.name, "fixed": e.name in self.fixed, "params": self.params[e.name].tolist(),
                             "nonlinear": self.nl[e.name].tolist() if e.name in self.nl else None}
@@ -191,50 +244,94 @@ class Model:
 
     @classmethod
     def load(cls, path, robot: Robot | None = None, config: EffectConfig | None = None) -> "Model":
-        """The model `save` wrote, with every parameter as saved; robot: the arm (default: the saved MJCF and site,
-        else the Panda); config: the effects' shapes (default: as saved, e.g. pose_bias's joints). ValueError naming
-        the file and what is wrong."""
+        """The model `save` wrote, with every parameter as saved; robot: the arm (default: the saved one, an MJCF path
+        relative to the model file); config: the effects' shapes (default: as saved, e.g. pose_bias's joints).
+        Every field is checked (types, shapes, finite values within each effect's bounds): ValueError naming the
+        file, the field, what was found and what was expected."""
         try:
-            with open(path) as f:
+            with open(path, encoding="utf-8-sig") as f:             # -sig: an editor's byte-order mark
                 doc = json.load(f)
         except (OSError, ValueError, TypeError) as err:
             raise ValueError(f"path: could not read a model from {path!r}: {err}") from None
-        if not isinstance(doc, dict) or doc.get("format") != "rme effect model":
-            raise ValueError(f"{path}: expected a model written by Model.save, found no 'rme effect model' format")
-        saved = doc.get("robot") or {}
-        if robot is None:
-            robot = Robot.from_xml(saved["xml"], ee=saved.get("ee", "ee")) if saved.get("xml") else Robot.panda()
-        if saved.get("n") not in (None, robot.n):
-            raise ValueError(f"{path}: the model is for an arm of {saved['n']} joints, the robot has {robot.n}")
-        if config is None:
-            try:
-                config = EffectConfig(**{k: tuple(v) if isinstance(v, list) else v
-                                         for k, v in (doc.get("config") or {}).items()})
-            except TypeError as err:
-                raise ValueError(f"{path}: the saved effect config does not fit EffectConfig: {err}") from None
+        where = f"{path}: "
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+            raise ValueError(f"{where}format: expected {FORMAT!r} (a file Model.save wrote), found "
+                             f"{doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}")
+        _field(doc, "version", int, where, lambda v: v == 1, "1")
+        robot = robot or _saved_robot(_field(doc, "robot", dict, where), path, where)
+        config = config or _saved_config(_field(doc, "config", dict, where), where)
+        fitted = _field(doc, "fitted", bool, where)
+        items = _field(doc, "effects", list, where, lambda v: len(v) > 0, "a non-empty list of effects")
         model = cls(robot, config)
-        for item in doc.get("effects", []):
-            name = item.get("name")
-            if name not in model.library:
-                raise ValueError(f"{path}: unknown effect {name!r}; expected one of {sorted(model.library)}")
-            params = np.asarray(item["params"], dtype=float)
-            e = model.library[name]
-            if params.shape != (e.size(robot.n),) or not np.all(np.isfinite(params)):
-                raise ValueError(f"{path}: effect {name!r} expected {e.size(robot.n)} finite parameters, found "
-                                 f"{params.shape}")
-            model.add(name, fixed=params if item.get("fixed") else None)
-            model.params[name] = params
-            if item.get("nonlinear") is not None:
-                nl = np.asarray(item["nonlinear"], dtype=float)
-                want = (robot.n, len(e.nonlinear[0])) if e.nonlinear else None
-                if nl.shape != want or not np.all(np.isfinite(nl)):
-                    raise ValueError(f"{path}: effect {name!r} expected nonlinear parameters of shape {want}, "
-                                     f"found {nl.shape}")
-                model.nl[name] = nl
-        model.fitted = bool(doc.get("fitted", False))
+        for i, item in enumerate(items):
+            _load_effect(model, item, f"{where}effects[{i}].")
+        model.fitted = fitted
         return model
 
     def _check_fitted(self):
         if self.free and not self.fitted:
             raise ValueError(f"model: free effects {[e.name for e in self.free]} have no fitted parameters; "
                              "call model.fit(log) first")
+
+
+FORMAT = "rme effect model"                     # the "format" field of a saved model
+
+
+def _field(doc: dict, key: str, kind, where: str, ok=None, expected: str = ""):
+    """doc[key], ValueError naming it unless present, of type kind (bool is not an int) and ok(value)."""
+    if key not in doc:
+        raise ValueError(f"{where}{key}: expected a field {key!r}, found none")
+    v = doc[key]
+    if not isinstance(v, kind) or (kind is int and isinstance(v, bool)) or (ok is not None and not ok(v)):
+        raise ValueError(f"{where}{key}: expected {expected or kind.__name__}, found {v!r}")
+    return v
+
+
+def _saved_robot(saved: dict, path, where: str) -> Robot:
+    """The arm a saved model names: {"name": "panda"} or {"xml": path relative to the model file}, with its ee and n."""
+    ee = _field(saved, "ee", str, where + "robot.") if "ee" in saved else "ee"
+    if saved.get("name") == "panda":
+        robot = Robot.panda()
+    elif isinstance(saved.get("xml"), str):
+        xml = os.path.join(os.path.dirname(os.path.abspath(path)), saved["xml"])
+        robot = Robot.from_xml(xml, ee=ee)
+    else:
+        raise ValueError(f"{where}robot: expected {{'name': 'panda'}} or {{'xml': MJCF path}}, found {saved!r}")
+    if "n" in saved:
+        _field(saved, "n", int, where + "robot.", lambda v: v == robot.n, f"{robot.n} joints like the arm")
+    return robot
+
+
+def _saved_config(saved: dict, where: str) -> EffectConfig:
+    """EffectConfig from its saved fields: each a finite real number or a list of them, names EffectConfig has."""
+    names = {f.name: f for f in dataclasses.fields(EffectConfig)}
+    out = {}
+    for k, v in saved.items():
+        if k not in names:
+            raise ValueError(f"{where}config.{k}: expected one of the fields {sorted(names)}, found {k!r}")
+        vals = v if isinstance(v, list) else [v]
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in vals):
+            raise ValueError(f"{where}config.{k}: expected finite real numbers, found {v!r}")
+        if isinstance(names[k].default, int) and not isinstance(names[k].default, bool) and \
+                not (isinstance(v, int) and v >= 0):
+            raise ValueError(f"{where}config.{k}: expected a whole number >= 0, found {v!r}")
+        out[k] = tuple(v) if isinstance(v, list) else v
+    return EffectConfig(**out)
+
+
+def _load_effect(model: "Model", item, where: str):
+    """Add one saved effect {name, fixed, params, nonlinear} to the model, every field checked."""
+    if not isinstance(item, dict):
+        raise ValueError(f"{where[:-1]}: expected an object {{name, fixed, params, nonlinear}}, found {item!r}")
+    name = _field(item, "name", str, where, lambda v: v in model.library, f"one of {sorted(model.library)}")
+    if name in model.names:
+        raise ValueError(f"{where}name: expected each effect once, found {name!r} again")
+    e, n = model.library[name], model.robot.n
+    params = e.check(where + "params", _field(item, "params", list, where), n)
+    fixed = _field(item, "fixed", bool, where) if "fixed" in item else False
+    model.add(name, fixed=params if fixed else None)
+    model.params[name] = params
+    if item.get("nonlinear") is not None:
+        if not e.nonlinear:
+            raise ValueError(f"{where}nonlinear: expected null for {name!r} (linear), found {item['nonlinear']!r}")
+        model.nl[name] = e.check(where + "nonlinear", item["nonlinear"], n, nonlinear=True)

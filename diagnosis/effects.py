@@ -26,6 +26,15 @@ class EffectConfig:
     sigmoid_p3: tuple = (-0.3, 0.3)          # rad/s, bounds of Gaz p3 (fitted |p3| < 0.05, Gaz et al. 2019)
     sigmoid_rows: int = 2000                 # samples per joint used for the sigmoid's fit (every k-th row)
     coulomb_rows: int = 1000                 # ... for the Coulomb width (each one a filter window of dq; ours)
+    max_mass: float = 4.0                    # kg, payload mass bound: the Panda's rated 3 kg (datasheet) + 1 kg margin
+    max_com: float = 0.3                     # m, payload CoM distance bound |r| from the ee origin: within reach of
+    #                                          the hand (a tool or a held object; a CoM metres away is not a load)
+    offset_max: float = 1.0                  # Nm, |tau_0| bound: the load-free torque offset of a Panda is a few
+    #                                          tenths, up to about 1 Nm on J1-J4 (panda_facts.md; Gaz fo <= 0.25 Nm)
+    scale_max: float = 2.0                   # upper bound of k_G, k_M: a model off by 2x is another arm
+    friction_factor: float = 10.0            # friction, rotor bounds: this many times the largest value Gaz et al.
+    #                                          2019 identified on a Panda (fv 0.23, fc 0.36, p1 1.28) or the
+    #                                          0.05 kg m^2 rotor inertia of the realistic plant
     bias_joints: int = 0                     # joints whose sin q_k, cos q_k enter the pose_bias effect (7 on the
     #                                          Panda); 0: no pose_bias in the library (opt-in: a map of 15 n
     #                                          parameters absorbs any static error, a wrong gravity scale included)
@@ -94,6 +103,8 @@ class Signals:
             return Y
         flat = Y.reshape(len(Y), -1)
         cols = np.flatnonzero(np.any(flat != 0, axis=0))
+        if len(cols) == 0:                                   # e.g. friction of an arm that never moves
+            return Y
         out = flat.copy()
         out[:, cols] = savgol_filter(np.ascontiguousarray(flat[:, cols].T), self.smoothing[0], self.smoothing[1],
                                      axis=-1, mode="interp").T
@@ -125,6 +136,8 @@ class Effect:
     smooth: filter the block like the log's torques (needed for sharp regressors such as Coulomb friction; the
     library's smooth effects skip it, since their content lies inside the filter's pass band anyway).
     lower, upper: physical bounds per parameter name (repeated per joint for a per-joint effect; None = unbounded).
+    scale: each parameter's plausible size (a change the log must be able to see; identify.py), None = unknown.
+    nl_bounds: (lower (k,), upper (k,)) of the nonlinear parameters, what their fits keep to.
     physical: a named constraint of physical.KINDS: "rigid_body" (10 parameters with a positive semidefinite
     pseudo-inertia), "tilt" (parameters = angles (ax, ay), regressor columns c(ax, ay) = R g - g, 3 of them).
     Nonlinear effects also give nonlinear=(names, units, initial (k,)) and
@@ -145,9 +158,12 @@ class Effect:
     lower: tuple | None = None
     upper: tuple | None = None
     physical: str = ""
+    radius: float = np.inf
+    scale: tuple | None = None
+    nl_bounds: tuple | None = None
 
     def __post_init__(self):
-        for name in ("lower", "upper"):
+        for name in ("lower", "upper", "scale"):
             v = getattr(self, name)
             if v is not None and len(v) != len(self.params):
                 raise ValueError(f"{name}: expected one bound per parameter ({len(self.params)}), found {len(v)}")
@@ -164,6 +180,42 @@ class Effect:
     def coef(self, p, g) -> np.ndarray:
         """The block's coefficients for parameters p: p itself, or dg = R(ax, ay) g - g (3,) for a tilt."""
         return tilt_columns(p, g)[0] if self.physical == "tilt" else np.asarray(p, dtype=float)
+
+    def check(self, name: str, p, n: int, nonlinear: bool = False) -> np.ndarray:
+        """p as a float array (size(n),) (or (n, k) nonlinear parameters), ValueError naming `name` unless it holds
+        real, finite numbers within the effect's bounds (lower/upper, or nl_bounds)."""
+        a = np.asarray(p, dtype=object if isinstance(p, (list, tuple)) else None)
+        flat = a.ravel().tolist() if a.dtype == object else None
+        if flat is not None and not all(isinstance(v, (int, float, np.integer, np.floating)) and
+                                        not isinstance(v, (bool, np.bool_)) for v in flat):
+            raise ValueError(f"{name}: expected real numbers for {self.name!r}, found {p!r}")
+        a = np.asarray(p)
+        if a.dtype.kind not in "fiu":
+            raise ValueError(f"{name}: expected real numbers for {self.name!r}, found dtype {a.dtype}")
+        a = a.astype(float)
+        want = (n, len(self.nonlinear[0])) if nonlinear else (self.size(n),)
+        if a.shape != want:
+            raise ValueError(f"{name}: expected shape {want} for {self.name!r}, found {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name}: expected finite values for {self.name!r}, found {a.ravel().tolist()}")
+        lo, hi = (np.broadcast_to(np.asarray(b, float), want) for b in self.nl_bounds) if nonlinear else \
+            self.bounds(n)
+        bad = np.flatnonzero(((a < lo) | (a > hi)).ravel())
+        if len(bad):
+            i = int(bad[0])
+            raise ValueError(f"{name}: expected {self.name!r} values within [{lo.ravel()[i]:g}, {hi.ravel()[i]:g}], "
+                             f"found {a.ravel()[i]:g} (entry {i})")
+        return a
+
+    def column_scales(self, n: int, g) -> np.ndarray:
+        """The plausible size (columns(n),) of each column's coefficient (identify.py): `scale` per parameter
+        (repeated per joint), for a tilt |g| (s, s, s^2 / 2) with s its angle's scale; NaN without a scale."""
+        if self.scale is None:
+            return np.full(self.columns(n), np.nan)
+        if self.physical == "tilt":
+            a = float(self.scale[0])
+            return float(np.linalg.norm(g)) * np.array([a, a, a * a / 2])
+        return np.repeat(np.asarray(self.scale, float), n if self.per_joint else 1)
 
     def bounds(self, n: int):
         """(lower, upper) (size(n),) of the parameters, +-inf where unbounded."""
@@ -209,7 +261,7 @@ class Effect:
         if self.nonlinear and nl is not None:
             for i, (name, unit) in enumerate(zip(self.nonlinear[0], self.nonlinear[1])):
                 lines.append(f"{name} = {_fmt(np.asarray(nl)[:, i])} {unit}")
-        if self.payload and p[0] > 1e-6:
+        if self.payload and p[0] > 1e-3:                # a gram or more: a load to describe
             lines.append(f"theta: m = {p[0]:.3f} kg, r = {_fmt(p[1:4] / p[0])} m (ee frame)")
         return "; ".join(lines)
 
@@ -256,7 +308,7 @@ def segments(effects, n: int, g, relax=()) -> list:
             out.append(Segment(e.name, i0, i0 + k, np.full(k, -np.inf), np.full(k, np.inf)))
         else:
             lo, hi = e.bounds(n)
-            out.append(Segment(e.name, i0, i0 + k, lo, hi, e.physical, np.asarray(g, float), e.labels(n)))
+            out.append(Segment(e.name, i0, i0 + k, lo, hi, e.physical, np.asarray(g, float), e.labels(n), e.radius))
         i0 += k
     return out
 
@@ -271,46 +323,56 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
     with its physical bounds: scales, masses, inertias and friction coefficients are >= 0."""
     c = config
     body = ("m", "m_cx", "m_cy", "m_cz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
+    inf, k = np.inf, c.friction_factor
+    load = dict(payload=True, smooth=False, radius=c.max_com)
+    rated = 3.0                              # kg, the Panda's rated payload (datasheet): a load's plausible size
     effects = [
         Effect("gravity", "the arm's own weight, G(q) of the nominal link masses and CoMs, scaled by k_G",
-               lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False, lower=(0.0,)),
+               lambda s: s.gravity[:, :, None], ("k_G",), ("(1 = nominal)",), nominal=1.0, smooth=False, lower=(0.0,),
+               upper=(c.scale_max,), scale=(0.1,)),
         Effect("motion", "the arm's inertial, Coriolis and centrifugal torques M(q) ddq + C(q, dq) dq, scaled by k_M",
                lambda s: s.motion[:, :, None], ("k_M",), ("(1 = nominal)",), nominal=1.0, signal="ddq", smooth=False,
-               lower=(0.0,)),
+               lower=(0.0,), upper=(c.scale_max,), scale=(0.1,)),
         Effect("payload", "a load at the end-effector whose weight pulls on the arm (static: Eqs. 4-5, "
                "phi = (m, m r), r in the ee frame)", lambda s: -s.payload, ("m", "m_rx", "m_ry", "m_rz"),
-               ("kg", "kg m", "kg m", "kg m"), payload=True, smooth=False, lower=(0.0, -np.inf, -np.inf, -np.inf)),
+               ("kg", "kg m", "kg m", "kg m"), lower=(0.0, -inf, -inf, -inf), upper=(c.max_mass, inf, inf, inf),
+               physical="payload", scale=(rated, rated * c.max_com, rated * c.max_com, rated * c.max_com), **load),
         Effect("rigid_payload", "a rigid load at the end-effector: its weight and its inertia under motion "
                "(Newton-Euler; inertia about the ee origin; pseudo-inertia positive semidefinite)", lambda s: -s.body,
-               body, ("kg", "kg m", "kg m", "kg m") + ("kg m^2",) * 6, payload=True, smooth=False,
-               physical="rigid_body"),
+               body, ("kg", "kg m", "kg m", "kg m") + ("kg m^2",) * 6, physical="rigid_body", **load,
+               lower=(0.0,) + (-inf,) * 9, upper=(c.max_mass,) + (inf,) * 9,
+               scale=(rated,) + (rated * c.max_com,) * 3 + (rated * c.max_com ** 2,) * 6),
         Effect("viscous", "friction growing in proportion to joint speed (lubricant shear in the gears), fv dq",
-               lambda s: s.dq, ("fv",), ("Nm s/rad",), per_joint=True, signal="dq", smooth=False, lower=(0.0,)),
+               lambda s: s.dq, ("fv",), ("Nm s/rad",), per_joint=True, signal="dq", smooth=False, lower=(0.0,),
+               upper=(k * 0.23,), scale=(0.23,)),
         Effect("coulomb", "sliding friction of constant size opposing motion, fc sign(dq), smoothed as "
                "fc tanh(dq / w) with the width w fitted per joint", lambda s, nl: np.tanh(s.dq / nl[:, 0]),
-               ("fc",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,),
-               nonlinear=(("w",), ("rad/s",), (c.coulomb_width,)),
+               ("fc",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,), upper=(k * 0.36,), scale=(0.36,),
+               nonlinear=(("w",), ("rad/s",), (c.coulomb_width,)), nl_bounds=tuple(zip(c.coulomb_widths)),
                fit_nonlinear=lambda s, rows, z, nl: fit_coulomb(s, rows, z, nl, c.coulomb_widths, c.coulomb_rows)),
         Effect("sigmoid", "joint friction as a sigmoid of speed (Gaz et al. 2019): p1/(1+exp(-p2(dq+p3))) - "
                "p1/(1+exp(-p2 p3))", lambda s, nl: sigmoid_shape(s.dq, nl[:, 0], nl[:, 1]),
-               ("p1",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,),
-               nonlinear=(("p2", "p3"), ("s/rad", "rad/s"), (10.0, 0.0)),
+               ("p1",), ("Nm",), per_joint=True, signal="dq", lower=(0.0,), upper=(k * 1.28,), scale=(1.28,),
+               nonlinear=(("p2", "p3"), ("s/rad", "rad/s"), (10.0, 0.0)), nl_bounds=tuple(zip(c.sigmoid_p2, c.sigmoid_p3)),
                fit_nonlinear=lambda s, rows, z, nl: fit_sigmoid(s, rows, z, nl, c.sigmoid_p2, c.sigmoid_p3,
                                                                 c.sigmoid_rows)),
         Effect("offset", "a constant bias of each joint torque sensor (calibration drift)",
-               lambda s: np.ones_like(s.q), ("tau_0",), ("Nm",), per_joint=True, signal="t", smooth=False),
+               lambda s: np.ones_like(s.q), ("tau_0",), ("Nm",), per_joint=True, signal="t", smooth=False,
+               lower=(-c.offset_max,), upper=(c.offset_max,), scale=(c.offset_max,)),
         Effect("rotor", "the motor rotor's inertia seen through the gearbox, I_a ddq, missing from a link-only model",
-               lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False, lower=(0.0,)),
+               lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False, lower=(0.0,),
+               upper=(k * 0.05,), scale=(0.05,)),
         Effect("tilt", "the base is not level: gravity rotated by ax about world x, then ay about world y, "
                "G(q; g') - G(q; g) = -W dg with dg = Ry(ay) Rx(ax) g - g (exact)",
                lambda s: -s.gravity_map, ("ax", "ay"), ("rad", "rad"), smooth=False, physical="tilt",
-               lower=(-c.tilt_max,) * 2, upper=(c.tilt_max,) * 2),
+               lower=(-c.tilt_max,) * 2, upper=(c.tilt_max,) * 2, scale=(c.tilt_max,) * 2),
     ] + [
         Effect("pose_bias", "a static torque that depends on the pose only: the torque sensor's pose-dependent bias "
                "(and any static torque the nominal gravity misses), per joint a constant plus the first harmonics "
                "sin q_k, cos q_k of every joint", lambda s: pose_bias_block(s.q, c.bias_joints),
                ("b",) + tuple(f"{f} q{k + 1}" for f in ("sin", "cos") for k in range(c.bias_joints)),
-               ("Nm",) * (1 + 2 * c.bias_joints), per_joint=True, signal="q", smooth=False),
+               ("Nm",) * (1 + 2 * c.bias_joints), per_joint=True, signal="q", smooth=False,
+               scale=(c.offset_max,) * (1 + 2 * c.bias_joints)),
     ][:1 if c.bias_joints > 0 else 0]
     return {e.name: e for e in effects}
 

@@ -192,7 +192,7 @@ class Selection:
         explained = 1 - sse.sum(axis=0) / np.maximum(self.sse.sum(axis=0), 1e-300)
         p = 0.5 * (infos[0]["params"][-1] + infos[1]["params"][-1])        # the two folds' fits, averaged
         nl = 0.5 * (self.nl[(e.name, 0)] + self.nl[(e.name, 1)]) if e.nonlinear else None
-        return dict(effect=e.name, obj=e, keys=keys, sse=sse, fold_params=params, k=k,
+        return dict(effect=e.name, obj=e, keys=keys, sse=sse, fold_params=params, k=k, p=p,
                     explained=float(explained.mean()), explained_joints=explained,
                     joints=[int(j) + 1 for j in np.flatnonzero(v["better"])], significant=v["significant"],
                     worse=[int(j) + 1 for j in np.flatnonzero(v["worse"])], rms_change=-v["drop"],

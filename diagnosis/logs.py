@@ -31,6 +31,9 @@ class LogConfig:
                                    # (panda_facts.md); a longer gap is refused, one sg_window without data
     max_bad_rows: float = 0.01     # fraction of CSV data rows that may be malformed (a wrong number of fields or a
                                    # non-number): dropped and counted in info["bad_rows"]; more raises ValueError
+    max_angle: float = 4 * np.pi   # rad, |q| beyond: two turns, not a joint angle (degrees read as radians?)
+    max_speed: float = 50.0        # rad/s, |dq| beyond: 20x the Panda's 2.2-2.6 rad/s limits (panda_facts.md)
+    max_torque: float = 1000.0     # Nm, |tau_J|, |tau_ext| beyond: 11x the Panda's 87 Nm limit; not a joint torque
 
 
 @dataclass(frozen=True)
@@ -98,10 +101,7 @@ def read_npz(path) -> dict:
         raise ValueError(f"path: could not read the log {path!r} as .npz: {type(err).__name__}: {err}") from None
     with z:
         def column(k):
-            try:
-                return np.asarray(z[k], dtype=float)
-            except (TypeError, ValueError) as err:
-                raise ValueError(f"{k}: expected numbers in {path!r}, found {z[k].dtype} ({err})") from None
+            return real_array(k, z[k], f" in {path!r}")
         raw = {k: column(k) for k in ("t", "q", "dq", "ddq", "tau_J") if k in z}
         sign = str(z["tau_ext_sign"]) if "tau_ext_sign" in z else "paper"
         if sign not in SIGNS:
@@ -111,6 +111,15 @@ def read_npz(path) -> dict:
         elif "tau_ext_hat_filtered" in z:
             raw["tau_ext"] = -column("tau_ext_hat_filtered")
     return raw
+
+
+def real_array(name: str, v, where: str = "") -> np.ndarray:
+    """v as a float array; ValueError naming `name` for anything but real numbers (complex, bool, text, objects)."""
+    a = np.asarray(v)
+    if a.dtype.kind not in "fiu":
+        raise ValueError(f"{name}: expected real numbers{where}, found dtype {a.dtype}"
+                         + (" (complex values are not torques or angles)" if a.dtype.kind == "c" else ""))
+    return a.astype(float)
 
 
 def read_csv(path, max_bad_rows: float = LogConfig.max_bad_rows) -> tuple[dict, dict]:
@@ -148,7 +157,7 @@ def read_csv(path, max_bad_rows: float = LogConfig.max_bad_rows) -> tuple[dict, 
 def _csv_header(path):
     """Stripped column names of the first line of a CSV file."""
     try:
-        with open(path, newline="", encoding="utf-8") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:      # -sig: a spreadsheet's byte-order mark
             header = next(csv.reader(f), None)
             rows = sum(1 for line in f if line.strip())
     except (OSError, UnicodeDecodeError) as err:
@@ -171,7 +180,7 @@ def _csv_body(path, width, max_bad_rows):
         except (ValueError, UserWarning):
             pass
     rows, bad = [], []
-    with open(path, newline="", encoding="utf-8") as f:
+    with open(path, newline="", encoding="utf-8-sig") as f:
         reader = csv.reader(f)
         next(reader)
         for cells in reader:
@@ -225,9 +234,11 @@ def prepare(raw: dict, config: LogConfig = LogConfig(), source: str = "arrays", 
     raw = _check_raw(raw)
     info = {"source": source, "rows": len(raw["t"]), "bad_rows": 0, **(notes or {})}
     raw, info["nan_rows"] = _drop_nan(raw, config.drop_nan)
+    _check_ranges(raw, config)
     keep = ~_stale_rows(raw)
     info["stale_rows"] = int((~keep).sum())
-    t, out, info["dt"], info["resampled"] = _resample({k: v[keep] for k, v in raw.items()}, config, raw["t"])
+    t, out, info["dt"], info["resampled"] = _resample({k: v[keep] for k, v in raw.items()}, config, raw["t"],
+                                                         info)
     win = 2 * int(round(config.sg_window / info["dt"] / 2)) + 1
     if win <= config.sg_order or win > len(t):
         raise ValueError(f"config.sg_window: expected between {config.sg_order + 1} samples and the log "
@@ -244,9 +255,21 @@ def prepare(raw: dict, config: LogConfig = LogConfig(), source: str = "arrays", 
                info=info)
 
 
-def _resample(raw, config, stamps):
+def missing_cycles(stamps, dt) -> dict:
+    """The cycles a log missed, all filled in by interpolation: {gaps: steps of the recorded stamps (T0,) longer than
+    1.5 dt, missing_cycles: the periods dt missing in them, longest_gap [s] and gap_at [s] where it starts}."""
+    step = np.diff(stamps)
+    gaps = np.flatnonzero(step > 1.5 * dt)
+    missing = int(np.sum(np.round(step[gaps] / dt) - 1)) if len(gaps) else 0
+    i = int(gaps[np.argmax(step[gaps])]) if len(gaps) else None
+    return {"gaps": int(len(gaps)), "missing_cycles": missing,
+            "longest_gap": float(step[i]) if i is not None else 0.0,
+            "gap_at": float(stamps[i]) if i is not None else None}
+
+
+def _resample(raw, config, stamps, info):
     """(t (G,), arrays on the grid, dt, resampled?) after checking the length and the time stamps (stamps (T0,): all
-    recorded ones, stale rows included, for the gap check)."""
+    recorded ones, stale rows included, for the gap check); the missing cycles go into info."""
     t = raw["t"]
     if len(t) < config.min_samples:
         raise ValueError(f"log: too short to fit: {len(t)} samples after cleaning, expected at least "
@@ -260,6 +283,7 @@ def _resample(raw, config, stamps):
     dt = float(np.median(np.diff(t))) if config.dt is None else float(config.dt)
     if not dt > 0:
         raise ValueError(f"config.dt: expected a period > 0 s, found {dt}")
+    info.update(missing_cycles(stamps, dt))
     span = (t[-1] - t[0]) / dt + 1e-6          # slack: stamps like 3600.123 s (a robot clock) carry ~1e-13 s error
     grid = t[0] + dt * np.arange(int(np.floor(span)) + 1)
     if len(grid) == len(t) and np.allclose(grid, t, rtol=0, atol=1e-6 * dt):
@@ -289,7 +313,7 @@ def _check_raw(raw):
         missing.append("tau_J and/or tau_ext")
     if missing:
         raise ValueError(f"log: missing {', '.join(missing)}; found keys {sorted(raw)}")
-    out = {k: np.asarray(v, dtype=float) for k, v in raw.items()
+    out = {k: real_array(k, v) for k, v in raw.items()
            if k in ("t", "q", "dq", "ddq", "tau_J", "tau_ext") and v is not None}
     t = out["t"] = out["t"].reshape(-1) if out["t"].ndim == 2 and 1 in out["t"].shape else out["t"]
     if t.ndim != 1:
@@ -304,6 +328,17 @@ def _check_raw(raw):
         if v.shape != want:
             raise ValueError(f"{k}: expected shape {want} to match t and q, found {v.shape} (mismatched lengths)")
     return out
+
+
+def _check_ranges(raw, config):
+    """ValueError naming the first value beyond what a joint angle, speed or torque can be (config's max_*)."""
+    limits = {"q": (config.max_angle, "rad"), "dq": (config.max_speed, "rad/s"), "tau_J": (config.max_torque, "Nm"),
+              "tau_ext": (config.max_torque, "Nm")}
+    for k, (limit, unit) in limits.items():
+        if k in raw and np.any(np.abs(raw[k]) > limit):
+            row, j = np.argwhere(np.abs(raw[k]) > limit)[0]
+            raise ValueError(f"{k}: expected |{k}| <= {limit:g} {unit}, found {raw[k][row, j]:g} at row {row}, "
+                             f"joint {j + 1} ({int(np.sum(np.abs(raw[k]) > limit))} such values)")
 
 
 def _drop_nan(raw, drop):

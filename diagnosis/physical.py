@@ -10,7 +10,7 @@ from scipy.optimize import least_squares, lsq_linear
 
 from motion.inertia import inertia_of, pseudo_inertia, params_of as body_params   # noqa: F401 (re-exported)
 
-KINDS = ("", "tilt", "rigid_body")          # the named constraints an effect may declare beside its bounds
+KINDS = ("", "tilt", "rigid_body", "payload")   # the named constraints an effect may declare beside its bounds
 
 
 def solve(G, b, rcond: float = 1e-10):
@@ -110,7 +110,9 @@ def _factor_of(p):
 @dataclass(frozen=True)
 class Segment:
     """The columns [i0, i1) of one effect; lo, hi (k,) bounds of its physical parameters (k = i1 - i0, or 2 for a
-    tilt whose 3 columns are c(ax, ay)); kind one of KINDS; g (3,) for a tilt; labels (k,) of the parameters."""
+    tilt whose 3 columns are c(ax, ay)); kind one of KINDS; g (3,) for a tilt; labels (k,) of the parameters;
+    radius [m]: for a payload or rigid body (m, m c, ...), the CoM's distance bound |c| <= radius, i.e. the
+    second-order cone |m c| <= radius m."""
     name: str
     i0: int
     i1: int
@@ -119,18 +121,24 @@ class Segment:
     kind: str = ""
     g: np.ndarray | None = None
     labels: tuple = ()
+    radius: float = np.inf
 
 
 def violations(seg: Segment, c) -> list:
     """What the column values c (i1 - i0,) break: [(label, value)] outside the bounds; for a rigid body its
     body_issues; for a tilt [("|g + dg| / |g| - 1", value)] if |g| changes by more than 0.1 %."""
-    if seg.kind == "rigid_body":
-        return body_issues(c)
     if seg.kind == "tilt":
         ratio = np.linalg.norm(seg.g + c) / np.linalg.norm(seg.g) - 1
         return [("|g + dg| / |g| - 1", float(ratio))] if abs(ratio) > 1e-3 else []
-    bad = np.flatnonzero((c < seg.lo) | (c > seg.hi))
-    return [(seg.labels[i] if seg.labels else str(i), float(c[i])) for i in bad]
+    out = body_issues(c) if seg.kind == "rigid_body" else []
+    tol = 1e-6 * (1 + np.abs(np.where(np.isfinite(seg.lo), seg.lo, 0)) + np.abs(np.where(np.isfinite(seg.hi), seg.hi, 0)))
+    bad = np.flatnonzero((c < seg.lo - tol) | (c > seg.hi + tol))
+    out += [(seg.labels[i] if seg.labels else str(i), float(c[i])) for i in bad if not out or i > 0]
+    if seg.kind in ("payload", "rigid_body") and np.isfinite(seg.radius):
+        h = float(np.linalg.norm(c[1:4]))
+        if h > seg.radius * max(c[0], 0.0) * (1 + 1e-6) + 1e-6:          # 1e-6 kg m: nothing held there
+            out.append(("|r| [m]", h / c[0] if c[0] > 0 else np.inf))
+    return out
 
 
 def solve_physical(G, b, segs, rcond: float = 1e-10):
@@ -155,7 +163,7 @@ def solve_physical(G, b, segs, rcond: float = 1e-10):
     e = (V[:, keep].T @ (b / d)) / np.sqrt(lam[keep])                   # ||A c - y||^2 = ||R u - e||^2 + const
     lo, hi = np.full(K, -np.inf), np.full(K, np.inf)
     for s in segs:
-        if s.kind == "":
+        if s.kind != "tilt":
             lo[s.i0:s.i1], hi[s.i0:s.i1] = s.lo * d[s.i0:s.i1], s.hi * d[s.i0:s.i1]
     if all(s.kind == "" for s in segs):
         res = lsq_linear(R, e, bounds=(lo, hi), method="bvls" if keep.sum() == K else "trf", tol=1e-12)
@@ -178,15 +186,23 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
     the nearest strictly feasible point to c_u, until the duality gap m / t <= gap * |1/2 f^T u_unconstrained|."""
     K = len(f)
     bodies = [np.arange(s.i0, s.i1) for s in segs if s.kind == "rigid_body"]
+    cones = [(np.arange(s.i0, s.i0 + 4), s.radius) for s in segs
+             if s.kind in ("payload", "rigid_body") and np.isfinite(s.radius)]
     has_lo, has_hi = np.isfinite(lo), np.isfinite(hi)
     u = d * c_u
     for ix in bodies:                                              # eigenvalues raised to a margin above zero
         w, Q = np.linalg.eigh(pseudo_inertia(c_u[ix]))
         u[ix] = d[ix] * body_params((Q * np.maximum(w, 1e-3 * max(w.max(), 1e-9))) @ Q.T)
-    margin = 1e-3 * (np.abs(u) + 1e-6 * (1 + np.abs(u).max()))
+    margin = np.minimum(1e-3 * (np.abs(u) + 1e-6 * (1 + np.abs(u).max())), 0.25 * (hi - lo))   # inside a narrow box
     u = np.where(has_lo, np.maximum(u, lo + margin), u)
     u = np.where(has_hi, np.minimum(u, hi - margin), u)
-    m = 4 * len(bodies) + has_lo.sum() + has_hi.sum()
+    for ix, rho in cones:                                          # m c shrunk inside the cone (keeps J > 0)
+        c = u[ix] / d[ix]
+        c[0] = max(c[0], 1e-3 * (hi[ix[0]] / d[ix[0]] if np.isfinite(hi[ix[0]]) else 1.0))
+        h = np.linalg.norm(c[1:])
+        c[1:] *= min(1.0, 0.9 * rho * c[0] / max(h, 1e-300))
+        u[ix] = d[ix] * c
+    m = 4 * len(bodies) + 2 * len(cones) + has_lo.sum() + has_hi.sum()
     ridge = 1e-12 * max(np.trace(H) / K, 1e-300) * np.eye(K)
 
     def barrier(u, need=2):
@@ -205,6 +221,17 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
                 B = np.linalg.solve(J, _A.transpose(1, 0, 2).reshape(4, -1)).reshape(4, 10, 4).transpose(1, 0, 2)
                 g[ix] -= np.trace(B, axis1=1, axis2=2) / d[ix]         # -tr(J^-1 A_i) / d_i
                 Hb[np.ix_(ix, ix)] += np.einsum("ijk,lkj->il", B, B) / np.outer(d[ix], d[ix])
+        for ix, rho in cones:                  # -log(rho^2 m^2 - |h|^2), the cone's barrier (Boyd and Vandenberghe 11.6)
+            c = u[ix] / d[ix]
+            w = np.array([rho ** 2, -1.0, -1.0, -1.0])
+            sc = float(w @ c ** 2)
+            if sc <= 0 or c[0] <= 0:
+                return np.inf, None, None
+            phi -= np.log(sc)
+            if need:
+                ds = 2 * w * c / d[ix]
+                g[ix] -= ds / sc
+                Hb[np.ix_(ix, ix)] += np.outer(ds, ds) / sc ** 2 - np.diag(2 * w / d[ix] ** 2) / sc
         a, b = u - lo, hi - u
         phi -= np.log(a[has_lo]).sum() + np.log(b[has_hi]).sum()
         g += np.where(has_lo, -1 / np.where(has_lo, a, 1), 0) + np.where(has_hi, 1 / np.where(has_hi, b, 1), 0)
@@ -212,6 +239,8 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
             np.where(has_hi, 1 / np.where(has_hi, b, 1) ** 2, 0)
         return phi, g, Hb
 
+    if not np.isfinite(barrier(u, need=0)[0]):          # clamped into a box, a body lost its positive definiteness
+        u = _interior(u, d, lo, hi, bodies, cones)
     obj = lambda u: 0.5 * u @ H @ u - f @ u                                # noqa: E731
     f_u = obj(d * c_u)
     t = m / max(obj(u) - f_u, 1e-300)
@@ -232,11 +261,31 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
                 if np.isfinite(val) and t * obj(cand) + val <= now - 0.25 * alpha * dec:
                     break
                 alpha *= 0.5
+            if alpha <= 1e-12:
+                break                           # no feasible descent left at this t (rounding): stay inside
             u = u + alpha * du
         if m / t <= gap * max(abs(f_u), 1e-300):
             break
         t *= 10.0
     return u / d, f"barrier: {steps} Newton steps, duality gap <= {m / t:.2g}"
+
+
+def _interior(u, d, lo, hi, bodies, cones):
+    """u with every rigid body and payload cone moved to a strictly feasible point of its bounds: the mass inside its
+    bounds, the CoM at the origin and, for a body, an inertia of a sphere of 0.1 m radius about it (0.01 m kg^2/kg,
+    isotropic: pseudo-inertia positive definite)."""
+    u = u.copy()
+    for ix in [ix for ix in bodies] + [ix for ix, _ in cones]:
+        i0 = ix[0]
+        m_lo = lo[i0] / d[i0] if np.isfinite(lo[i0]) else 0.0
+        m_hi = hi[i0] / d[i0] if np.isfinite(hi[i0]) else max(u[i0] / d[i0], 1.0)
+        m = float(np.clip(u[i0] / d[i0], m_lo + 0.25 * (m_hi - m_lo), m_lo + 0.75 * (m_hi - m_lo)))
+        c = np.zeros(len(ix))
+        c[0] = m
+        if len(ix) == 10:
+            c[[4, 6, 9]] = 0.01 * m                                   # Ixx, Iyy, Izz (pinocchio's order)
+        u[ix] = d[ix] * c
+    return u
 
 
 def _solve_mapped(R, e, d, lo, hi, segs, c_u, info):
@@ -245,7 +294,7 @@ def _solve_mapped(R, e, d, lo, hi, segs, c_u, info):
     plain = np.ones(K, dtype=bool)
     x0, xlo, xhi, parts = [], [], [], []                # parts: (segment, slice of x)
     for s in segs:
-        if s.kind:
+        if s.kind in ("tilt", "rigid_body"):        # a payload's cone is not kept beside a tilt: bounds only
             plain[s.i0:s.i1] = False
     ip = np.flatnonzero(plain)
     x0.append(np.clip(d[ip] * c_u[ip], lo[ip], hi[ip]))

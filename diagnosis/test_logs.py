@@ -218,3 +218,44 @@ def test_every_format_loads_the_closed_form_signal(tmp_path, fmt_name):
     assert log.t[0] == 0.0 and len(log) == 2000 and log.info["dt"] == pytest.approx(1e-3, abs=1e-12)
     assert log.info["bad_rows"] == (1 if fmt_name == "lab csv" else 0)
     assert_matches_truth(log)
+
+
+# --- 4. what a file holds: byte-order mark, complex and impossible values, what was dropped and filled in ---------
+def test_a_csv_with_a_byte_order_mark_loads_like_one_without(tmp_path):
+    t = 1e-3 * np.arange(1000)
+    write_plain(tmp_path / "plain.csv", t)
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "plain.csv").read_bytes())   # a spreadsheet's
+    a, b = load_log(tmp_path / "plain.csv"), load_log(tmp_path / "bom.csv")
+    for key in ("t", "q", "dq", "tau_J", "tau_ext"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+
+
+def test_complex_bool_and_impossible_values_are_refused_naming_the_field(tmp_path):
+    t = 1e-3 * np.arange(1000)
+    q, dq, tau_J, tau_ext = truth(t)
+    good = dict(t=t, q=q, dq=dq, tau_J=tau_J, tau_ext=tau_ext)
+    cases = {"q": (q + 0j, r"q: expected real numbers.*complex"),
+             "dq": (dq > 0, r"dq: expected real numbers.*bool"),
+             "tau_J": (np.where(t[:, None] > 0.5, 1e300, tau_J), r"tau_J: expected \|tau_J\| <= 1000 Nm, found 1e\+300"),
+             "tau_ext": (tau_ext * 1e6, r"tau_ext: expected \|tau_ext\| <= 1000 Nm")}
+    for key, (bad, message) in cases.items():
+        np.savez(tmp_path / "bad.npz", **dict(good, **{key: bad}))
+        with pytest.raises(ValueError, match=message):
+            load_log(tmp_path / "bad.npz")
+    np.savez(tmp_path / "deg.npz", **dict(good, q=np.degrees(q)))         # degrees where radians belong
+    with pytest.raises(ValueError, match=r"q: expected \|q\| <= 12.5664 rad"):
+        load_log(tmp_path / "deg.npz")
+
+
+def test_missing_cycles_and_malformed_rows_are_counted_and_said(tmp_path, capsys):
+    from diagnosis.diagnose import main
+    from diagnosis.report import cleaning_summary
+    t = 1e-3 * np.arange(4000)
+    keep = np.ones(len(t), bool)
+    keep[2000:2040] = False                                   # 40 missing 1 kHz cycles: a 41 ms gap
+    write_lab(tmp_path / "lab.csv", 1e3 * t[keep])            # and one malformed first row (file line 2)
+    log = load_log(tmp_path / "lab.csv")
+    assert (log.info["gaps"], log.info["missing_cycles"], log.info["bad_rows"]) == (1, 40, 1)
+    text = cleaning_summary(log.info)
+    assert "1 malformed (file lines 2)" in text and "40 missing cycles in 1 gaps" in text, text
+    assert "longest 41 ms at t = 1.999 s" in text and "missing cycles filled in by linear interpolation" in text, text

@@ -106,3 +106,53 @@ def test_a_six_joint_arm_runs_through_the_command_line(tmp_path, capsys):
     np.testing.assert_allclose(out["after"]["params"]["viscous"], fv, rtol=0.05)
     assert D.main([str(tmp_path / "arm6.npz")]) == 2                         # the Panda has 7 joints
     assert "6 joints" in capsys.readouterr().err
+
+
+def test_a_model_file_is_checked_field_by_field(fitted, tmp_path):
+    model, _ = fitted
+    model.save(tmp_path / "good.json")
+    doc = json.loads((tmp_path / "good.json").read_text())
+    assert "xml" not in doc["robot"] and doc["robot"]["name"] == "panda"        # the arm by name, no absolute path
+
+    def edited(change):
+        d = json.loads(json.dumps(doc))
+        change(d)
+        return d
+    viscous = {"name": "viscous", "fixed": False, "params": [-50.0] * 7, "nonlinear": None}
+    cases = [
+        (lambda d: d["effects"].append(viscous), r"effects\[4\]\.params: expected 'viscous' values within \[0, "),
+        (lambda d: d["effects"].append(dict(viscous, params=[1e300] * 7)), r"found 1e\+300"),
+        (lambda d: d.pop("effects"), r"effects: expected a field 'effects', found none"),
+        (lambda d: d.update(effects=[]), r"effects: expected a non-empty list"),
+        (lambda d: d["effects"][0].update(params=[1e300]), r"effects\[0\]\.params: .*'gravity'.*found 1e\+300"),
+        (lambda d: d["effects"][2].update(nonlinear=[[5.0, 9.0]] * 7), r"effects\[2\]\.nonlinear: .*within"),
+        (lambda d: d["effects"][3].update(params=["0.1"] * 7), r"effects\[3\]\.params: expected real numbers"),
+        (lambda d: d["effects"].append(dict(doc["effects"][3])), r"effects\[4\]\.name: expected each effect once"),
+        (lambda d: d.update(fitted="yes"), r"fitted: expected bool, found 'yes'"),
+        (lambda d: d["robot"].update(n=6), r"robot\.n: expected 7 joints like the arm, found 6"),
+        (lambda d: d["config"].update(tilt_max=float("nan")), r"config\.tilt_max: expected finite real numbers"),
+    ]
+    for change, message in cases:
+        (tmp_path / "bad.json").write_text(json.dumps(edited(change)))
+        with pytest.raises(ValueError, match=message):
+            Model.load(tmp_path / "bad.json")
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "good.json").read_bytes())
+    assert Model.load(tmp_path / "bom.json").names == model.names           # an editor's byte-order mark
+
+
+def test_fixed_parameters_and_fit_rows_are_checked(fitted):
+    _, log = fitted
+    for bad, message in (([np.nan] * 7, "finite"), ([-50.0] * 7, "within"), ([1e300] * 7, "within"),
+                         ([1j] * 7, "real numbers"), ([0.1] * 6, r"shape \(7,\)")):
+        with pytest.raises(ValueError, match=f"fixed: expected .*{message}"):
+            Model.nominal(Robot.panda()).add("viscous", fixed=bad)
+    with pytest.raises(ValueError, match="rows: expected enough samples to fit 7 parameters .* found 0 rows"):
+        Model.nominal(Robot.panda()).add("offset").fit(log, rows=[])
+
+
+def test_output_folders_are_checked_before_the_work_starts(tmp_path, capsys):
+    for flag in ("--save", "--plot"):
+        args = [str(tmp_path / "absent.npz"), "--add", "offset", flag, str(tmp_path / "no" / "such" / "f")]
+        assert D.main(args) == 2                       # the folder is refused before the (absent) log is read
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"error: {flag}: expected a writable folder") and "\n" not in err, err

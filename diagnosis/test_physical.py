@@ -207,3 +207,28 @@ def test_models_with_widths_angles_and_bodies_round_trip_and_correct_exactly(tmp
     want = -(fc * np.tanh(dq / w) + plant(tilt=tilt).gravity(q) - ROBOT.gravity(q)
              - ROBOT.body_regressor(q, dq, 0 * q) @ body)
     np.testing.assert_allclose(model.correction(q, dq), want, atol=1e-9)
+
+
+def test_bounded_offsets_and_a_payload_cone_far_from_the_data_match_a_reference_solver():
+    """Data that ask for offsets of thousands of Nm beside a payload 2 m from the hand: the solve stays inside the +-1 Nm box
+    and the 0.3 m cone and is no worse than scipy's trust-constr on the same convex problem (fresh seeded draws)."""
+    from scipy.optimize import Bounds, NonlinearConstraint
+    from diagnosis.effects import segments
+    lib = Model(ROBOT).library
+    segs = segments([lib["offset"], lib["payload"]], 7, ROBOT.g)
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(60, 11)) * np.r_[np.ones(7), 3.0, np.ones(3)]
+        c_true = np.r_[rng.uniform(-2000, 2000, 7), 0.5, 1.0, -0.3, 0.2]
+        y = A @ c_true + 0.01 * rng.normal(size=60)
+        c, info = solve_physical(A.T @ A, A.T @ y, segs)
+        assert info["constrained"] and np.all(np.abs(c[:7]) <= 1 + 1e-9), c
+        assert 0 <= c[7] <= 4 and np.linalg.norm(c[8:]) <= 0.3 * c[7] * (1 + 1e-6) + 1e-9, c
+        cone = NonlinearConstraint(lambda x: 0.09 * x[7] ** 2 - x[8:] @ x[8:], 0, np.inf)
+        cost = lambda x: 0.5 * np.sum((A @ x - y) ** 2)                     # noqa: E731
+        ref = minimize(cost, np.r_[np.zeros(7), 1.0, np.zeros(3)], jac=lambda x: A.T @ (A @ x - y),
+                       hess=lambda x: A.T @ A, method="trust-constr", constraints=[cone],
+                       bounds=Bounds(np.r_[-np.ones(7), 0, -np.inf * np.ones(3)], np.r_[np.ones(7), 4, np.inf * np.ones(3)]),
+                       options={"gtol": 1e-10, "xtol": 1e-12, "maxiter": 1000})
+        assert cone.fun(ref.x) >= -1e-6 and np.all(np.abs(ref.x[:7]) <= 1 + 1e-6), ref     # a feasible reference
+        assert cost(c) <= cost(ref.x) * (1 + 1e-6) + 1e-9, (cost(c), cost(ref.x))
