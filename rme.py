@@ -275,8 +275,13 @@ class RME(Streaming):
         then(e, Ybar)
 
 
-if __name__ == "__main__":          # python rme.py diagnose LOG ...: the script's entry, not part of the module
-    from diagnosis.diagnose import main
-    sys.exit(main(sys.argv[2:], prog="rme.py diagnose") if sys.argv[1:2] == ["diagnose"] else print(
-        "usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n(the estimator itself is a "
-        "library: from rme import RME; demos: python sim.py --help)") or 2)
+if __name__ == "__main__":          # python rme.py diagnose|identify LOG ...: the script's entry, not part of the module
+    COMMANDS = {"diagnose": ("diagnosis.diagnose", "main"), "identify": ("robot.identify", "log_main")}
+    if sys.argv[1:2] and sys.argv[1] in COMMANDS:
+        import importlib
+        module, function = COMMANDS[sys.argv[1]]
+        sys.exit(getattr(importlib.import_module(module), function)(sys.argv[2:], prog=f"rme.py {sys.argv[1]}"))
+    print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
+          "       python rme.py identify LOG [--reference REF] [--json] [--save tool.json]\n(the estimator itself "
+          "is a library: from rme import RME; demos: python sim.py --help)")
+    sys.exit(2)
