@@ -13,6 +13,7 @@ from scipy.linalg import lapack
 import vi
 from detector import Detector, safe_theta
 from dynamics import Robot, as_states
+from motion.tool_forms import load_tool, phi_of_tool
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings, faulty
 from rme_levels import LevelMap, Levels
@@ -24,11 +25,17 @@ __all__ = ["RME", "RMESettings", "Estimate"]
 class RME(Streaming):
     """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
     use, returning the compensation torque (7,) to add to the controller's torque. executor (ours): runs each streamed
-    estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update."""
+    estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update.
+    tool (ours): a known tool on the flange (motion.tool_forms: a Tool, a dict with mass, com, inertia in the flange
+    frame F, or a tool.json path) that Desk does not have: its weight's torque Y(q) phi_tool is subtracted from
+    tau_ext as each sample arrives (so RME estimates only what is added to it) and its compensation is returned
+    with RME's. Its inertial torque in motion is not (below 0.05 Nm at the arm's usual speeds)."""
 
     def __init__(self, robot: Robot | None = None, weights: str | None = WEIGHTS, settings: RMESettings = RMESettings(),
-                 rng: np.random.Generator | None = None, correction=None, executor=None):
+                 rng: np.random.Generator | None = None, correction=None, executor=None, tool=None):
         self.robot = Robot.panda() if robot is None else robot
+        self.tool = None if tool is None else load_tool(tool)        # ValueError naming what is wrong
+        self._tool_phi = np.zeros(4) if tool is None else phi_of_tool(self.tool)   # (m, m c) in the ee frame
         self.settings, self.correction, self.executor = settings, correction, executor
         self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
                                                        #   a request; (generator, sample): a detection's steps
@@ -106,6 +113,8 @@ class RME(Streaming):
             raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
         if baseline is not None:
             tau = tau - as_states("baseline", baseline, n, allow_window=False)[0]
+        if self.tool is not None:
+            tau = tau - self.robot.payload_regressor(q) @ self._tool_phi
         if self.correction is not None:
             dq = np.zeros_like(q) if dq is None else as_states("dq", dq, n)[0]
             if dq.shape != q.shape:
@@ -153,6 +162,9 @@ class RME(Streaming):
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
         _, R, J = self.robot.kinematics(q)                            # one kinematics pass per sample
         Y = self.robot.payload_regressor_from(J, R)
+        tool = Y @ self._tool_phi                                      # the known tool's weight (0 without one)
+        tau = tau - tool
+        self._tau[i] = tau
         tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         self._r[i] = r if self.correction is None or np.isfinite(r).all() else tau - tau_mm
@@ -199,7 +211,7 @@ class RME(Streaming):
         if self._queued is not None and self._job is None and self._steps is None and self._pending is None:
             asked, self._queued = self._queued, None   # under the compensation just applied
             self._on_detection(asked)
-        self._last = np.minimum(np.maximum(-tau_mm, -self._limit), self._limit)
+        self._last = np.minimum(np.maximum(-tau_mm - tool, -self._limit), self._limit)
         return self._last
 
     def _plausible(self, theta) -> bool:

@@ -29,17 +29,18 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))   # the proje
 @dataclass(frozen=True)
 class EstimatorSpec:
     """What a worker process needs to rebuild the loop's estimator: the arm's MJCF path and ee site, the network
-    weights (None: zero prior mean), the settings, the seed of its Generator (the VI's sampling) and an optional
-    correction model file (diagnosis.effect_model.Model.save). build() gives the RME; same spec, same estimates."""
+    weights (None: zero prior mean), the settings, the seed of its Generator (the VI's sampling), an optional
+    correction model file (diagnosis.effect_model.Model.save) and an optional tool.json. build() gives the RME; same spec, same estimates."""
     xml_path: str = PANDA_XML
     ee: str = "ee"
     weights: str | None = WEIGHTS
     settings: RMESettings = RMESettings()
     seed: int = 0
     correction: str | None = None
+    tool: str | None = None            # a tool.json (motion.tool_forms): the known tool on the flange
 
     def __post_init__(self):
-        for name in ("xml_path", "weights", "correction"):
+        for name in ("xml_path", "weights", "correction", "tool"):
             path = getattr(self, name)
             if path is not None and not os.path.isfile(path):
                 raise ValueError(f"{name}: expected a file, found no file at {path!r}")
@@ -58,7 +59,7 @@ class EstimatorSpec:
             from diagnosis.effect_model import Model
             correction = Model.load(self.correction, robot)
         return RME(robot, weights=self.weights, settings=self.settings, rng=np.random.default_rng(self.seed),
-                   correction=correction, executor=executor)
+                   correction=correction, executor=executor, tool=self.tool)
 
 
 class ThreadWorker:
