@@ -156,3 +156,13 @@ def test_a_motion_too_short_for_a_fit_is_refused():
     q = np.tile(Q_READY, (100, 1))
     with pytest.raises(ValueError, match="samples"):
         fit_tool(robot, q, 0 * q, 0 * q, 0 * q)
+
+
+def test_ee_in_f_is_the_ee_site_seen_from_the_flange_site():
+    from motion.tool_forms import EE_IN_F
+    m = Robot.panda().model
+    d = mujoco.MjData(m)
+    d.qpos[:] = Q_READY + np.random.default_rng(1).uniform(-0.3, 0.3, 7)
+    mujoco.mj_forward(m, d)
+    Rf, Re = (d.site_xmat[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s)].reshape(3, 3) for s in ("flange", "ee"))
+    assert np.allclose(Rf.T @ Re, EE_IN_F, atol=1e-12)
