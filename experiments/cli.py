@@ -41,6 +41,8 @@ DEMOS = {
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
                 "experiments.explore_demo:explore", ("seed", "json")),
+    "identify-bench": ("the tool on the flange identified from its motion: random tools, errors beside the targets",
+                       "experiments.tool_bench:identify_bench", ("preset", "seed", "json", "tools")),
     "inertia": ("the payload's inertia from motion and its compensation on a wrist-turning limit cycle (about 1 min)",
                 "experiments.inertia_demo:inertia_demo", ("seed", "json")),
 }
@@ -53,6 +55,7 @@ FLAGS = {
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
     "episodes": (("--episodes",), dict(type=int, default=100, help="episodes of each kind")),
     "windows": (("--windows",), dict(type=int, default=200, help="simulated windows")),
+    "tools": (("--tools",), dict(type=int, default=5, help="random tools")),
 }
 
 
