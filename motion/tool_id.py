@@ -26,6 +26,9 @@ class ToolFitSettings:
     #                                (the precision Desk's fields are worth: the benchmark's targets)
     reference_tolerance: float = 0.05   # rad: rms q difference over the motion for a reference to be the same
     #                                motion (a 1 kg tool sags joint 6 by 0.025 rad rms under its 50 Nm/rad spring)
+    state_difference: bool = True   # referred: partial out each joint's friction and rotor inertia of the
+    #                                difference between the two motions (the tool's weight and inertia make the arm
+    #                                track the reference a little differently; the drives' own torques differ with it)
     fit: FitSettings = field(default_factory=lambda: FitSettings(prior_std=(5.0, 1.0, 1.0, 1.0), inertia_std=1.0))
     #                                a weak prior: 5 kg, 1 kg m, 1 kg m^2 (the data decide)
 
@@ -83,6 +86,7 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
     n, s = robot.n, settings
     if reference is not None:
         arrays = _referred(arrays, reference, settings.reference_tolerance)
+        ddq_ref, dq_ref = arrays.pop(), arrays.pop()
     if any(a.ndim != 2 or a.shape != arrays[0].shape or a.shape[1] != n for a in arrays):
         raise ValueError(f"q, dq, ddq, tau_ext: expected four (T, {n}) arrays, found {[a.shape for a in arrays]}")
     if not all(np.isfinite(a).all() for a in arrays):
@@ -95,8 +99,10 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
     if reference is None:
         Yr, tr = partial_out(Y, tau, nuisance(dq, ddq, s.friction_widths))
         pi, info = fit_inertia(Yr, tr, np.zeros(4), None, s.fit)
-    else:                                                   # referred: the offsets are the reference's too
-        pi, info = fit_inertia(Y, tau, np.zeros(4), None, dataclasses.replace(s.fit, offsets=False))
+    else:       # referred: the offsets are the reference's too; what the drives add for the states' difference stays
+        Z = nuisance(dq, ddq, s.friction_widths) - nuisance(dq_ref[rows], ddq_ref[rows], s.friction_widths)
+        Yr, tr = partial_out(Y, tau, Z) if s.state_difference else (Y, tau)
+        pi, info = fit_inertia(Yr, tr, np.zeros(4), None, dataclasses.replace(s.fit, offsets=False))
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)
     std = np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J), 0.0))
@@ -114,22 +120,24 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
 
 
 def _referred(arrays, reference, tolerance):
-    """arrays with the reference's tau_ext subtracted row by row (both cut to the shorter); ValueError when the
-    reference's q is not the same motion (rms difference above tolerance on a joint)."""
+    """arrays with the reference's tau_ext subtracted row by row (both cut to the shorter) and the reference's dq,
+    ddq; ValueError when the reference's q is not the same motion (rms difference above tolerance on a joint)."""
     try:
-        q_ref, tau_ref = (np.asarray(a, dtype=float) for a in reference)
+        q_ref, dq_ref, ddq_ref, tau_ref = (np.asarray(a, dtype=float) for a in reference)
     except (TypeError, ValueError):
-        raise ValueError("reference: expected (q, tau_ext) arrays of the motion with the flange empty") from None
+        raise ValueError("reference: expected (q, dq, ddq, tau_ext) arrays of the motion with the flange empty") \
+            from None
     n = arrays[0].shape[1]
-    if q_ref.ndim != 2 or q_ref.shape[1] != n or tau_ref.shape != q_ref.shape:
-        raise ValueError(f"reference: expected q, tau_ext of shape (T, {n}), found {q_ref.shape}, {tau_ref.shape}")
+    if q_ref.ndim != 2 or q_ref.shape[1] != n or any(a.shape != q_ref.shape for a in (dq_ref, ddq_ref, tau_ref)):
+        raise ValueError(f"reference: expected q, dq, ddq, tau_ext of shape (T, {n}), found "
+                         f"{[a.shape for a in (q_ref, dq_ref, ddq_ref, tau_ref)]}")
     T = min(len(q_ref), len(arrays[0]))
     gap = np.sqrt(np.mean((arrays[0][:T] - q_ref[:T]) ** 2, axis=0))
     if T < 0.95 * max(len(q_ref), len(arrays[0])) or gap.max() > tolerance:
         raise ValueError(f"reference: expected the same motion (rms q difference <= {tolerance} rad, lengths within "
                          f"5 %), found rms {np.round(gap, 4).tolist()} rad, {len(q_ref)} and {len(arrays[0])} samples")
     q, dq, ddq, tau = (a[:T] for a in arrays)
-    return [q, dq, ddq, tau - tau_ref[:T]]
+    return [q, dq, ddq, tau - tau_ref[:T], dq_ref[:T], ddq_ref[:T]]
 
 
 def _parameters(pi) -> np.ndarray:

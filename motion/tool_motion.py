@@ -24,14 +24,17 @@ class MotionSettings:
     rest: float = 0.5              # s at rest at the start (the push watch's first rows) and at the end
     ramp: float = 0.25             # share of the cone over which its amplitude rises (and falls: cosine ramps)
     turns: float = 1.0             # cone turns
-    shake: float = 5.0             # s of wrist oscillations after the cone
-    shake_hz: tuple = (0.83, 1.07, 1.31)   # Hz, joints 5, 6, 7: distinct, so the three axes' accelerations differ
+    shake: float = 8.0             # s of wrist oscillations after the cone
+    shake_hz: tuple = (2.1, 2.5, 2.9)   # Hz, joints 5, 6, 7: distinct, so the three axes' accelerations differ
     #                                (ours: at 0.4 rad/s they give 2-3 rad/s^2, a 5e-3 kg m^2 inertia 0.01-0.015 Nm)
     max_duration: float = 20.0     # s: the whole motion at most (the target)
     kp: tuple = (600.0,) * 4 + (50.0,) * 3     # Nm/rad: cpic.JointHold's gains (stiff enough that a 3 kg load moves
     kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad:  the arm by a few mrad)
     soft: float = 0.1              # after a push the spring is kp x soft about where the arm is (a person moves it)
     push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushSettings)
+    compensate: bool = True        # the watch's static fit Y phi + b is compensated: the arm follows the reference
+    #                                alike with and without the tool (a 1 kg tool's weight otherwise sags joint 6 by
+    #                                0.025 rad, and the arm's own pose-dependent error differs by that much)
     push_samples: int = 10         # consecutive samples (10 ms) above it (a single stale or noisy sample is not one)
     settle: float = 0.25           # s: the watch starts after this (a momentum observer, K = 100 /s, and the first
     #                                commands settle; the reference is at rest until settings.rest)
@@ -98,6 +101,7 @@ class PushWatch:
         self._limit = np.asarray(settings.push, dtype=float)
         self._prior = np.diag(1.0 / np.square([10.0, 1.0, 1.0, 1.0]))   # kg, kg m: keeps phi finite at one pose
         self.residual = np.zeros(n)                         # the last r (n,) [Nm]
+        self.predicted = np.zeros(n)                        # the last Y phi + b (n,) [Nm] (0 before the watch starts)
         self.peak = np.zeros(n)                             # its largest |r| per joint so far
 
     def update(self, q, tau_ext) -> bool:
@@ -112,7 +116,8 @@ class PushWatch:
             self._S += z[:, :, None] * z[:, None, :]
         if self._k % 20 == 0 or self._b is None:
             self._refit()
-        self.residual = tau - Y @ self._phi - self._b
+        self.predicted = Y @ self._phi + self._b
+        self.residual = tau - self.predicted
         self.peak = np.maximum(self.peak, np.abs(self.residual))
         self._over = self._over + 1 if np.any(np.abs(self.residual) > self._limit) else 0
         return self._over >= self.settings.push_samples
@@ -129,8 +134,9 @@ class PushWatch:
 class ExcitationController:
     """Tracks excitation(robot, q0) with tau = ID(q, dq, ddq_d) + Kp (q_d - q) + Kd (dq_d - dq) (the nominal model's
     inverse dynamics, a spring-damper to the moving reference: at 0.4 rad/s a person meets a spring, never a fast
-    arm). On a push (PushWatch) the motion is abandoned at once: the reference stops where the arm is and the spring
-    drops to settings.soft of its stiffness. step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's
+    arm), less the watch's fit of the static tau_ext (settings.compensate). On a push (PushWatch) the motion is
+    abandoned at once: the reference stops where the arm is, the spring drops to settings.soft of its stiffness and
+    the compensation keeps the fit of the samples before the push. step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's
     controllers; after the reference it holds its last point. abandoned: the time [s] of the push or None."""
 
     def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings()):
@@ -154,5 +160,7 @@ class ExcitationController:
             i = min(self.k, len(self.q_d) - 1)
             tau = self.robot.inverse_dynamics(q, dq, self.ddq_d[i]) + self.kp * (self.q_d[i] - q) + \
                 self.kd * (self.dq_d[i] - dq)
+        if self.settings.compensate:
+            tau = tau - self.watch.predicted             # tau_ext's sign: the torque the tool applies, undone
         self.k += 1
         return (tau if compensation is None else tau + compensation), None
