@@ -337,17 +337,22 @@ def test_own_cpu_keeps_the_loop_on_one_cpu_and_other_processes_off_it_then_resto
 
 
 def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, capsys):
-    """franka.py --identify --sim --sim-tool: --json's mass, com, inertia (flange frame) near the tool given, the
-    forms beside them, tool.json written; --tool then gives RME that tool, whose estimate at rest stays near 0."""
-    tool = [0.7, 0.03, -0.02, 0.06, 4e-3, 3e-3, 5e-3]
+    """franka.py --identify --sim --sim-tool on a fresh plant and tool (seeded draw): --json's mass, com, inertia
+    (flange frame) near the tool given, to the targets for mass (1 % or 10 g) and CoM (3 mm per axis) and to 40 % for
+    the inertia's diagonal (its 15 % target is missed on some tools: docs/tool_identification.md); the motion slow
+    and inside the limits, no push seen; the forms beside them; tool.json written."""
+    rng = np.random.default_rng(2032)
+    c = rng.normal(size=3)
+    tool = [rng.uniform(0.4, 1.5), *(c * rng.uniform(0.02, 0.1) / np.linalg.norm(c)), *rng.uniform(3e-3, 6e-3, 3)]
     path = tmp_path / "tool.json"
     assert franka.main(["--identify", "--sim", "--seed", "2", "--sim-tool", *map(str, tool), "--json",
                         "--save", str(path)]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert abs(out["mass"] - 0.7) < 0.007 and np.abs(np.subtract(out["com"], tool[1:4])).max() < 0.003
+    assert abs(out["mass"] - tool[0]) < max(0.01 * tool[0], 0.01) and np.abs(np.subtract(out["com"], tool[1:4])).max() < 0.003
     assert np.allclose(np.diag(out["inertia"]), tool[4:], rtol=0.4)
     assert out["libfranka_set_load"]["F_x_Cload"] == out["com"] and out["franka_ros2_set_load"]["mass"] == out["mass"]
     assert max(out["motion"]["max_abs_dq"]) < 0.5 and out["motion"]["min_limit_distance_rad"] >= 0.2
+    assert out["motion"]["seconds"] <= 20.0 and out["motion"]["abandoned_at_s"] is None
     saved = json.loads(path.read_text())
     assert saved["mass"] == out["mass"]
 

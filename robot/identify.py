@@ -36,10 +36,12 @@ def sim_backend(seed: int, tool=None, run: int = 0, preset: str = "realistic"):
     return backend
 
 
-def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings()):
-    """The excitation about backend.initial.q through franka's run_loop: (log arrays, summary, controller)."""
+def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings(), seconds=None):
+    """The excitation about backend.initial.q through franka's run_loop (for `seconds`, default: all of it):
+    (log arrays, summary, controller)."""
     controller = ExcitationController(robot, backend.initial.q, settings)
-    summary, log = run_loop(backend, robot, controller, None, controller.duration, print_every=np.inf)
+    seconds = controller.duration if seconds is None else seconds
+    summary, log = run_loop(backend, robot, controller, None, seconds, print_every=np.inf)
     summary["abandoned_at_s"] = controller.abandoned
     summary["max_abs_dq"] = np.abs(log["dq"]).max(axis=0).round(4).tolist() if len(log["dq"]) else []
     lo, hi = robot.model.jnt_range.T
