@@ -33,7 +33,8 @@ def one(robot, seed: int, tool, preset: str) -> dict:
     ref = run_motion(sim_backend(seed, None, 0, preset), robot, franka.run_loop)[0]
     log, summary, _ = run_motion(sim_backend(seed, tool, 1, preset), robot, franka.run_loop)
     truth, row = truth_of(tool), {"seed": seed, "truth": truth_of(tool), "motion": {
-        k: summary[k] for k in ("seconds", "abandoned_at_s", "max_abs_dq", "min_limit_distance_rad")}}
+        k: summary[k] for k in ("seconds", "abandoned_at_s", "max_abs_dq", "min_limit_distance_rad",
+                                 "push_watch_peak_Nm")}}
     for name, reference in (("referred", prepared(ref)), ("absolute", None)):
         fit = fit_logs(robot, prepared(log), reference)
         err = {k: fit.value[k] - truth[k] for k in truth}
@@ -67,7 +68,7 @@ def _print_row(r):
     print(f"seed {r['seed']}: m {t['mass']:.3f} kg, com {[round(t[k], 3) for k in ('com_x', 'com_y', 'com_z')]} m, "
           f"I {[f'{t[k]:.4f}' for k in ('Ixx', 'Iyy', 'Izz')]}; motion {m['seconds']:.1f} s, max |dq| "
           f"{max(m['max_abs_dq']):.3f} rad/s, limit distance {m['min_limit_distance_rad']:.2f} rad, "
-          f"abandoned {m['abandoned_at_s']}")
+          f"abandoned {m['abandoned_at_s']}, push watch peak {m['push_watch_peak_Nm']} Nm")
     for name in ("referred", "absolute"):
         e = r[name]["error"]
         print(f"  {name:9s} mass {1e3 * e['mass']:+7.1f} g ({100 * e['mass'] / t['mass']:+.2f} %), CoM "

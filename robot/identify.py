@@ -43,6 +43,7 @@ def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = Motio
     seconds = controller.duration if seconds is None else seconds
     summary, log = run_loop(backend, robot, controller, None, seconds, print_every=np.inf)
     summary["abandoned_at_s"] = controller.abandoned
+    summary["push_watch_peak_Nm"] = controller.watch.peak.round(3).tolist()   # the largest |r| per joint seen
     summary["max_abs_dq"] = np.abs(log["dq"]).max(axis=0).round(4).tolist() if len(log["dq"]) else []
     lo, hi = robot.model.jnt_range.T
     summary["min_limit_distance_rad"] = float(np.min(np.minimum(log["q"] - lo, hi - log["q"]))) if len(log["q"]) else None
