@@ -25,8 +25,10 @@ class MotionSettings:
     ramp: float = 0.25             # share of the cone over which its amplitude rises (and falls: cosine ramps)
     turns: float = 1.0             # cone turns
     shake: float = 8.0             # s of wrist oscillations after the cone
-    shake_hz: tuple = (2.1, 2.5, 2.9)   # Hz, joints 5, 6, 7: distinct, so the three axes' accelerations differ
-    #                                (ours: at 0.4 rad/s they give 2-3 rad/s^2, a 5e-3 kg m^2 inertia 0.01-0.015 Nm)
+    shake_hz: tuple = (1.1, 1.3, 1.5)   # Hz, joints 5, 6, 7: distinct, so the three axes' accelerations differ
+    #                                (ours: 2-3 rad/s^2, a 5e-3 kg m^2 inertia 0.01-0.015 Nm; at 2-3 Hz the arm
+    #                                tracks less alike with and without the tool, and the realistic plant's fit of
+    #                                the diagonal came out 15-25 % low; at 1.1-1.5 Hz, 2-6 %, docs/tool_identification.md)
     max_duration: float = 20.0     # s: the whole motion at most (the target)
     kp: tuple = (600.0,) * 4 + (50.0,) * 3     # Nm/rad: cpic.JointHold's gains (stiff enough that a 3 kg load moves
     kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad:  the arm by a few mrad)
