@@ -345,9 +345,16 @@ def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, 
     c = rng.normal(size=3)
     tool = [rng.uniform(0.4, 1.5), *(c * rng.uniform(0.02, 0.1) / np.linalg.norm(c)), *rng.uniform(3e-3, 6e-3, 3)]
     path = tmp_path / "tool.json"
+    log = tmp_path / "tool_run.npz"
     assert franka.main(["--identify", "--sim", "--seed", "2", "--sim-tool", *map(str, tool), "--json",
-                        "--save", str(path)]) == 0
+                        "--save", str(path), "--log", str(log)]) == 0
     out = json.loads(capsys.readouterr().out)
+    import subprocess                                   # the same run's log through rme.py identify, no reference
+    res = subprocess.run([sys.executable, "rme.py", "identify", str(log), "--json"], capture_output=True, text=True,
+                         cwd=os.path.dirname(os.path.abspath(__file__)), timeout=120)
+    from_log = json.loads(res.stdout)
+    assert res.returncode == 0 and set(from_log) >= {"mass", "com", "inertia", "desk", "libfranka_set_load"}
+    assert any("no reference motion" in n for n in from_log["fit"]["notes"])
     assert abs(out["mass"] - tool[0]) < max(0.01 * tool[0], 0.01) and np.abs(np.subtract(out["com"], tool[1:4])).max() < 0.003
     assert np.allclose(np.diag(out["inertia"]), tool[4:], rtol=0.4)
     assert out["libfranka_set_load"]["F_x_Cload"] == out["com"] and out["franka_ros2_set_load"]["mass"] == out["mass"]
@@ -371,6 +378,16 @@ def test_rme_with_a_known_tool_estimates_only_the_load_added_to_it():
     assert abs(est.mean[0] - load[0]) < 0.05 and np.abs(est.mean[1:3]).max() < 0.02
     plain = RME(robot).estimate(q, tau)                          # without the tool: the sum
     assert abs(plain.mean[0] - 1.4) < 0.1
+
+
+def test_identify_refuses_a_dry_run_and_a_sim_tool_without_the_sim():
+    with pytest.raises(ValueError, match="--identify"):
+        franka.main(["--identify", "--robot-ip", "172.16.0.2", "--dry-run"])
+    with pytest.raises(ValueError, match="--sim-tool"):
+        franka.main(["--identify", "--robot-ip", "172.16.0.2", "--sim-tool", "1", "0", "0", "0.05", "1e-3", "1e-3",
+                     "1e-3"])
+    with pytest.raises(ValueError, match="--sim-tool.mass"):
+        franka.main(["--identify", "--sim", "--sim-tool", "-1", "0", "0", "0.05", "1e-3", "1e-3", "1e-3"])
 
 
 @pytest.mark.parametrize("tool, match", [({"mass": 1.0, "com": [0, 0, 0]}, "inertia"), ("/no/such/tool.json", "read"),

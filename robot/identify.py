@@ -116,6 +116,9 @@ def franka_identify(args, run_loop, make_backend) -> int:
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
     --log FILE with the flange empty) if given. Prints the report (--json), writes --save and --log. run_loop and
     make_backend: franka's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
+    if args.dry_run or (args.sim_tool is not None and not args.sim):
+        raise ValueError(f"--identify: expected a motion (no --dry-run) and --sim-tool only with --sim, found "
+                         f"--dry-run {args.dry_run}, --sim {args.sim}, --sim-tool {args.sim_tool}")
     robot = Robot.panda()
     truth = None if args.sim_tool is None else make_tool(args.sim_tool[0], args.sim_tool[1:4],
                                                          np.diag(args.sim_tool[4:7]), "--sim-tool")
