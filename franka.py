@@ -305,7 +305,7 @@ def make_backend(args, rng: np.random.Generator):
         payload = [(args.seconds / 2, args.sim_payload, SIM_COM)] if args.sim_payload > 0 else []
         if getattr(args, "sim_tool", None):            # the tool on the flange from the start (flange frame F)
             from robot.identify import sim_payload
-            payload = sim_payload(args.sim_tool) + payload
+            payload = sim_payload(args.sim_tool, payload)
         return SimBackend(rng, payload=payload, paced=args.paced)
     if args.lib == "pylibfranka":
         return PylibfrankaBackend(args.robot_ip, realtime=not args.no_realtime, control=not args.dry_run)

@@ -10,19 +10,24 @@ import numpy as np
 
 from diagnosis.logs import load_log, prepare
 from dynamics import Robot
-from motion.tool_forms import EE_IN_F, forms, make_tool, save_tool
+from motion.inertia import rigid_body
+from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
 from motion.tool_id import NAMES, ToolFit, fit_tool, truth_of
 from motion.tool_motion import ExcitationController, MotionSettings
 
 NOISE_STREAM = 1000     # the --sim plant's sensor noise of run k is drawn from seed + NOISE_STREAM + k
 
 
-def sim_payload(values) -> list:
-    """[(0, m, c_ee, I_ee)]: SimBackend's payload for --sim-tool M CX CY CZ IXX IYY IZZ (flange frame F, inertia
-    about the CoM), checked (ValueError naming --sim-tool) and turned into the ee frame."""
+def sim_payload(values, later=()) -> list:
+    """SimBackend's payload events for --sim-tool M CX CY CZ IXX IYY IZZ (flange frame F, inertia about the CoM),
+    checked (ValueError naming --sim-tool), in the ee frame: the tool from t = 0, then each later (t, m, r_ee) load
+    as one body with the tool (the plant holds one body on the flange; pi adds about the same origin)."""
     tool = make_tool(values[0], values[1:4], np.diag(values[4:7]), "--sim-tool")
+    events = [(0.0, tool)]
+    for t, m, r in later:
+        events.append((t, tool_of_params(params_of_tool(tool) + rigid_body(m, r))))
     R = EE_IN_F
-    return [(0.0, tool.mass, R.T @ tool.com, R.T @ tool.inertia @ R)]
+    return [(t, b.mass, R.T @ b.com, R.T @ b.inertia @ R) for t, b in events]
 
 
 def sim_backend(seed: int, tool=None, run: int = 0, preset: str = "realistic"):
