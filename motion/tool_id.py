@@ -26,6 +26,8 @@ class ToolFitSettings:
     #                                (the precision Desk's fields are worth: the benchmark's targets)
     reference_tolerance: float = 0.05   # rad: rms q difference over the motion for a reference to be the same
     #                                motion (a 1 kg tool sags joint 6 by 0.025 rad rms under its 50 Nm/rad spring)
+    hac_lags: int = 30              # rows (0.3 s) over which the residual's correlation is summed in the std
+    #                                (the 51-sample filters span 5 rows; the arm's error varies more slowly)
     state_difference: bool = True   # referred: partial out each joint's friction and rotor inertia of the
     #                                difference between the two motions (the tool's weight and inertia make the arm
     #                                track the reference a little differently; the drives' own torques differ with it)
@@ -35,8 +37,9 @@ class ToolFitSettings:
 
 @dataclass
 class ToolFit:
-    """A fit: the tool (flange frame), pi (10,) in the ee frame, value / std / observed per NAMES (std 1-sigma from
-    the whitened residual: the rows are filtered, so read it as a lower bound), the fit's FitInfo, rows used, the
+    """A fit: the tool (flange frame), pi (10,) in the ee frame, value / std / observed per NAMES (std 1-sigma: the
+    larger of the white-residual one and the one with the residual's correlation over 0.3 s, _sandwich; a lower
+    bound still where the model misses something systematic), the fit's FitInfo, rows used, the
     per-joint residual rms [Nm], and notes (what the data could not tell)."""
     tool: Tool
     pi: np.ndarray
@@ -105,7 +108,8 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         pi, info = fit_inertia(Yr, tr, np.zeros(4), None, dataclasses.replace(s.fit, offsets=False))
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)
-    std = np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J), 0.0))
+    std = np.sqrt(np.maximum(np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),      # white residual, and
+                                        np.einsum("ki,ij,kj->k", J, _sandwich(Yr, tr, info, s), J)), 0.0))  # correlated
     observed = _observed(value, std, s.resolution)
     notes = [f"{k} not observed: the motion leaves it at {value[i]:.4g} +- {2 * std[i]:.2g} (2 std)"
              for i, k in enumerate(NAMES) if not observed[i]]
@@ -117,6 +121,22 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
                      f"({info.status})")
     return ToolFit(tool, pi, dict(zip(NAMES, value.tolist())), dict(zip(NAMES, std.tolist())),
                    dict(zip(NAMES, observed)), info, len(rows), info.residual, notes)
+
+
+def _sandwich(Y, tau, info: FitInfo, s: ToolFitSettings) -> np.ndarray:
+    """cov (10, 10) of the least-squares pi with the rows' residuals correlated in time (the filters, the arm's slowly
+    varying error): G^-1 (sum over lags |k| <= L of (1 - |k| / (L + 1)) Gamma_k) G^-1, Gamma_k = sum_t g_t g_{t-k}^T,
+    g_t = sum_j w_j^2 Y_tj^T e_tj (Newey and West 1987), G the weighted normal matrix with the prior."""
+    w2 = info.weights ** 2
+    e = tau - Y @ info.unconstrained                                   # (T, n)
+    g = np.einsum("j,tjk,tj->tk", w2, Y, e)                            # (T, 10) scores
+    prior = np.diag(1.0 / np.square([*s.fit.prior_std, *[s.fit.inertia_std] * 6]))
+    Ginv = np.linalg.inv(np.einsum("j,tji,tjk->ik", w2, Y, Y) + prior)
+    S = g.T @ g
+    for k in range(1, s.hac_lags + 1):
+        Gk = g[k:].T @ g[:-k]
+        S += (1.0 - k / (s.hac_lags + 1)) * (Gk + Gk.T)
+    return Ginv @ S @ Ginv
 
 
 def _referred(arrays, reference, tolerance):
