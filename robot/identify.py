@@ -98,9 +98,11 @@ def format_text(rep: dict) -> str:
         lines.append(f"  {k:6s} {p['value']:+.5f} {unit:6s} 2 std {2 * p['std']:.5f}{seen}")
     lines += [f"  note: {n}" for n in rep["fit"]["notes"]]
     d, s = rep["desk"], rep["libfranka_set_load"]
-    lines += ["Desk (Settings > End effector), flange frame:",
+    lines += ["this is everything on the flange (the model's arm has no hand): enter it in Desk as the end effector,",
+              "or set Desk's end effector to none and send it by setLoad / SetLoad (not both):",
+              "Desk (Settings > End effector), flange frame:",
               f"  mass {d['mass']} kg, center of mass {d['center_of_mass']} m, inertia {d['inertia']} kg m^2",
-              "libfranka (adds to Desk's end effector; not while a controller runs):", f"  {s['call']}",
+              "libfranka (added to Desk's end effector; refused while a controller runs):", f"  {s['call']}",
               "franka_ros2:", f"  {rep['franka_ros2_set_load']['command']}"]
     if "motion" in rep:
         m = rep["motion"]
