@@ -397,6 +397,12 @@ def test_rme_refuses_a_bad_tool_naming_it(tool, match):
         RME(Robot.panda(), weights=None, tool=tool)
 
 
+def test_estimator_spec_refuses_a_missing_tool_file():
+    from robot.worker import EstimatorSpec
+    with pytest.raises(ValueError, match="tool"):
+        EstimatorSpec(tool="/no/such/tool.json")
+
+
 def test_rme_with_a_tool_compensates_its_weight_from_the_first_sample():
     from motion.tool_forms import make_tool, phi_of_tool
     robot = Robot.panda()

@@ -138,3 +138,11 @@ def test_ee_in_f_is_the_ee_site_seen_from_the_flange_site():
     mujoco.mj_forward(m, d)
     Rf, Re = (d.site_xmat[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s)].reshape(3, 3) for s in ("flange", "ee"))
     assert np.allclose(Rf.T @ Re, EE_IN_F, atol=1e-12)
+
+
+def test_a_reference_of_another_motion_is_refused():
+    robot, s = Robot.panda(), MotionSettings()
+    q, dq, ddq = excitation(robot, Q_READY, s)
+    other = excitation(robot, Q_READY + np.array([0, 0, 0, 0, 0.3, 0, 0]), s)
+    with pytest.raises(ValueError, match="same motion"):
+        fit_tool(robot, q, dq, ddq, 0 * q, reference=(other[0], other[1], other[2], 0 * q))

@@ -135,7 +135,11 @@ def franka_identify(args, run_loop, make_backend) -> int:
             reference = prepared(run_motion(sim_backend(args.seed, None, 0), robot, run_loop)[0])
         backend = sim_backend(args.seed, truth, 1)
     else:                                              # the robot's backend, as franka.py builds it
-        backend = make_backend(args, np.random.default_rng(args.seed))
+        try:
+            backend = make_backend(args, np.random.default_rng(args.seed))
+        except RuntimeError as err:
+            print(f"franka.py: not started: {err}", file=sys.stderr)
+            return 2
     log, summary, _ = run_motion(backend, robot, run_loop)
     if args.log:
         np.savez(args.log, **log, tau_ext_sign="paper")
