@@ -21,25 +21,29 @@ class MotionSettings:
     margin: float = 0.2            # rad kept from every joint limit by the reference (the target)
     tilt: float = 0.5              # rad: the cone's half-angle in joints 5 and 6 (29 deg: gravity's part across
     #                                the flange axis reaches sin 0.5 = 0.48 g, so the CoM along that axis is seen)
-    rest: float = 0.5              # s at rest at the start (the push watch's first rows) and at the end
+    rest: float = 0.75             # s at rest at the start (the push watch's first rows, its compensation fading
+    #                                in) and at the end
     ramp: float = 0.25             # share of the cone over which its amplitude rises (and falls: cosine ramps)
     turns: float = 1.0             # cone turns
     shake: float = 8.0             # s of wrist oscillations after the cone
     shake_hz: tuple = (1.1, 1.3, 1.5)   # Hz, joints 5, 6, 7: distinct, so the three axes' accelerations differ
     #                                (ours: 2-3 rad/s^2, a 5e-3 kg m^2 inertia 0.01-0.015 Nm; at 2-3 Hz the arm
-    #                                tracks less alike with and without the tool, and the realistic plant's fit of
-    #                                the diagonal came out 15-25 % low; at 1.1-1.5 Hz, 2-6 %, docs/tool_identification.md)
+    #                                tracks less alike with and without the tool: one realistic tool's diagonal came
+    #                                out 18-26 % low there, 2-6 % at 1.1-1.5 Hz, docs/tool_identification.md)
     max_duration: float = 20.0     # s: the whole motion at most (the target)
     kp: tuple = (600.0,) * 4 + (50.0,) * 3     # Nm/rad: cpic.JointHold's gains (stiff enough that a 3 kg load moves
-    kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad:  the arm by a few mrad)
+    kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad   the arm by a few mrad)
     soft: float = 0.1              # after a push the spring is kp x soft about where the arm is (a person moves it)
-    push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushSettings)
+    push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushWatch:
+    #                                with nobody touching, 0.25-1.06 Nm measured on the realistic plant; a 10 N push
+    #                                at the hand gives 3-5 Nm on joints 1-4 at the ready pose)
+    push_samples: int = 10         # consecutive samples (10 ms) above it (a single stale or noisy sample is not one)
     compensate: bool = True        # the watch's static fit Y phi + b is compensated: the arm follows the reference
     #                                alike with and without the tool (a 1 kg tool's weight otherwise sags joint 6 by
     #                                0.025 rad, and the arm's own pose-dependent error differs by that much)
-    push_samples: int = 10         # consecutive samples (10 ms) above it (a single stale or noisy sample is not one)
     settle: float = 0.25           # s: the watch starts after this (a momentum observer, K = 100 /s, and the first
-    #                                commands settle; the reference is at rest until settings.rest)
+    #                                commands settle; the reference is at rest until settings.rest); its
+    #                                compensation then fades in over 0.2 s (the arm's whole static torque: no jolt)
 
 
 def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings()):
@@ -99,7 +103,7 @@ class PushWatch:
         self.robot, self.settings, n = robot, settings, robot.n
         self._S = np.zeros((n, 6, 6))                       # per joint sum of z z^T, z = (Y_j (4), tau_j, 1)
         self._phi, self._b, self._k, self._over = np.zeros(4), None, 0, 0
-        self._start = int(round(settings.settle * settings.rate))
+        self.start = int(round(settings.settle * settings.rate))   # samples before the watch starts
         self._limit = np.asarray(settings.push, dtype=float)
         self._prior = np.diag(1.0 / np.square([10.0, 1.0, 1.0, 1.0]))   # kg, kg m: keeps phi finite at one pose
         self.residual = np.zeros(n)                         # the last r (n,) [Nm]
@@ -109,7 +113,7 @@ class PushWatch:
     def update(self, q, tau_ext) -> bool:
         """Feed one sample; True from the sample the push is confirmed on."""
         self._k += 1
-        if self._k <= self._start:
+        if self._k <= self.start:
             return False
         Y = self.robot.payload_regressor(q)                 # (n, 4)
         tau = np.asarray(tau_ext, dtype=float)
@@ -162,7 +166,8 @@ class ExcitationController:
             i = min(self.k, len(self.q_d) - 1)
             tau = self.robot.inverse_dynamics(q, dq, self.ddq_d[i]) + self.kp * (self.q_d[i] - q) + \
                 self.kd * (self.dq_d[i] - dq)
-        if self.settings.compensate:
-            tau = tau - self.watch.predicted             # tau_ext's sign: the torque the tool applies, undone
+        if self.settings.compensate:                     # tau_ext's sign: the torque the tool applies, undone, faded
+            fade = min(max((self.k - self.watch.start) / (0.2 * self.settings.rate), 0.0), 1.0)   # in over 0.2 s
+            tau = tau - fade * self.watch.predicted
         self.k += 1
         return (tau if compensation is None else tau + compensation), None
