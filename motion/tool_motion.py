@@ -35,8 +35,8 @@ class MotionSettings:
     kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad   the arm by a few mrad)
     soft: float = 0.1              # after a push the spring is kp x soft about where the arm is (a person moves it)
     push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushWatch:
-    #                                with nobody touching, 0.25-1.06 Nm measured on the realistic plant; a 10 N push
-    #                                at the hand gives 3-5 Nm on joints 1-4 at the ready pose)
+    #                                with nobody touching, 0.24-0.80 Nm measured on the realistic plant; a force at
+    #                                the flange of 7-14 N, by its direction, crosses them at the ready pose)
     push_samples: int = 10         # consecutive samples (10 ms) above it (a single stale or noisy sample is not one)
     compensate: bool = True        # the watch's static fit Y phi + b is compensated: the arm follows the reference
     #                                alike with and without the tool (a 1 kg tool's weight otherwise sags joint 6 by
