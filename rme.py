@@ -287,7 +287,7 @@ class RME(Streaming):
         then(e, Ybar)
 
 
-if __name__ == "__main__":          # python rme.py diagnose|identify LOG ...: the script's entry, not part of the module
+if __name__ == "__main__":          # python rme.py diagnose|identify LOG ...: the script's entry, not the module
     COMMANDS = {"diagnose": ("diagnosis.diagnose", "main"), "identify": ("robot.identify", "log_main")}
     if sys.argv[1:2] and sys.argv[1] in COMMANDS:
         import importlib

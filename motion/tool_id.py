@@ -80,11 +80,12 @@ def partial_out(Y, tau, Z):
 
 def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFitSettings = ToolFitSettings()):
     """The tool from a motion: q, dq, ddq, tau_ext (T, n) (tau_ext in the paper's sign, filtered alike with dq,
-    diagnosis.logs.prepare; the tool's whole torque, nothing of it configured). reference: (q, tau_ext) (T', n) of
-    the same motion with the flange empty (row k beside row k): its tau_ext is subtracted, which removes the arm's
+    diagnosis.logs.prepare; the tool's whole torque, nothing of it configured). reference: (q, dq, ddq, tau_ext)
+    (T', n) of the same motion with the flange empty (row k beside row k): its tau_ext is subtracted, which removes the arm's
     own model error and the sensor's offsets (Khalil, Gautier, Lemoine 2007: loaded minus unloaded), so the tool's
-    whole torque is fitted, its weight at every pose included (what gives the mass); without it the joints' friction and rotor inertia are, and the arm's model error of links 5-7 stays in the
-    result (a note says so). Returns a ToolFit."""
+    whole torque is fitted, its weight at every pose included (what gives the mass); without it the joints' friction
+    and rotor inertia are partialled out, and the arm's model error of links 5-7 stays in the result (a note says so). Returns a
+    ToolFit."""
     arrays = [np.asarray(a, dtype=float) for a in (q, dq, ddq, tau_ext)]
     n, s = robot.n, settings
     if reference is not None:

@@ -142,8 +142,9 @@ class ExcitationController:
     inverse dynamics, a spring-damper to the moving reference: at 0.4 rad/s a person meets a spring, never a fast
     arm), less the watch's fit of the static tau_ext (settings.compensate). On a push (PushWatch) the motion is
     abandoned at once: the reference stops where the arm is, the spring drops to settings.soft of its stiffness and
-    the compensation keeps the fit of the samples before the push. step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's
-    controllers; after the reference it holds its last point. abandoned: the time [s] of the push or None."""
+    the compensation keeps the fit of the samples before the push. step(q, dq, compensation, tau_ext) -> (tau (n,),
+    None) as cpic's controllers; after the reference it holds its last point. abandoned: the time [s] of the push or
+    None."""
 
     def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings()):
         self.robot, self.settings = robot, settings

@@ -51,7 +51,8 @@ def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = Motio
     summary["push_watch_peak_Nm"] = controller.watch.peak.round(3).tolist()   # the largest |r| per joint seen
     summary["max_abs_dq"] = np.abs(log["dq"]).max(axis=0).round(4).tolist() if len(log["dq"]) else []
     lo, hi = robot.model.jnt_range.T
-    summary["min_limit_distance_rad"] = float(np.min(np.minimum(log["q"] - lo, hi - log["q"]))) if len(log["q"]) else None
+    room = np.minimum(log["q"] - lo, hi - log["q"])
+    summary["min_limit_distance_rad"] = float(room.min()) if len(room) else None
     return log, summary, controller
 
 
@@ -107,7 +108,8 @@ def format_text(rep: dict) -> str:
     if "motion" in rep:
         m = rep["motion"]
         lines.append(f"motion: {m.get('seconds')} s, abandoned at {m.get('abandoned_at_s')} s, max |dq| "
-                     f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, closest limit {m.get('min_limit_distance_rad')} rad")
+                     f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
+                     f"closest limit {m.get('min_limit_distance_rad')} rad")
     return "\n".join(lines)
 
 
