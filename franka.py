@@ -316,6 +316,9 @@ def _estimates(estimator) -> dict:
 def make_backend(args, rng: np.random.Generator):
     if args.sim:
         payload = [(args.seconds / 2, args.sim_payload, SIM_COM)] if args.sim_payload > 0 else []
+        if getattr(args, "sim_tool", None):            # the tool on the flange from the start (flange frame F)
+            from robot.identify import sim_payload
+            payload = sim_payload(args.sim_tool, payload)
         return SimBackend(rng, payload=payload, paced=args.paced)
     if args.lib == "pylibfranka":
         return PylibfrankaBackend(args.robot_ip, realtime=not args.no_realtime, control=not args.dry_run)
@@ -343,9 +346,18 @@ def main(argv=None) -> int:
     ap.add_argument("--sync-estimate", action="store_true", help="RME's estimates within the callback, no worker")
     ap.add_argument("--calibration", metavar="FILE", default=None,
                     help="RME's error model of this robot (python rme.py calibrate LOG --save FILE)")
+    ap.add_argument("--identify", action="store_true", help="identify the tool on the flange (a <= 20 s slow motion)")
+    ap.add_argument("--sim-tool", type=float, nargs=7, metavar=("M", "CX", "CY", "CZ", "IXX", "IYY", "IZZ"),
+                    help="with --sim: the tool on the flange, kg, m and kg m^2 about its CoM, flange frame F")
+    ap.add_argument("--reference", help="with --identify: a log of the motion with the flange empty")
+    ap.add_argument("--save", metavar="FILE", help="with --identify: write tool.json")
+    ap.add_argument("--tool", metavar="FILE", help="tool.json: the tool taken as known, RME estimates what is added")
     args = ap.parse_args(argv)
     if not args.sim and not args.robot_ip:
         ap.error("--robot-ip: expected the robot's address (or --sim), found none")
+    if args.identify:                                  # robot/identify.py: the motion, the fit, the forms
+        from robot.identify import franka_identify
+        return franka_identify(args, run_loop, make_backend)
     for name, v, ok, want in (("--seconds", args.seconds, np.isfinite(args.seconds) and args.seconds > 0, "> 0 s"),
                               ("--stiffness-scale", args.stiffness_scale,
                                np.isfinite(args.stiffness_scale) and 0 < args.stiffness_scale <= 1, "in (0, 1]"),
@@ -354,8 +366,8 @@ def main(argv=None) -> int:
             raise ValueError(f"{name}: expected {want}, found {v!r}")
     robot = Robot.panda()
     try:                                               # the estimator, rebuilt as it is in a worker process; a
-        spec = EstimatorSpec(seed=args.seed + 1, calibration=args.calibration)   # calibration file that cannot
-        as_error_model(args.calibration)                                         # be read stops us here
+        spec = EstimatorSpec(seed=args.seed + 1, calibration=args.calibration, tool=args.tool)   # calibration
+        as_error_model(args.calibration)                                         # file that cannot be read stops us
     except ValueError as err:
         print(f"franka.py: not started: {err}", file=sys.stderr)
         return 2

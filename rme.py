@@ -14,6 +14,7 @@ import vi
 from detector import Detector, safe_theta
 from dynamics import Robot, as_states
 from error_model import ErrorModel, as_error_model
+from motion.tool_forms import load_tool, phi_of_tool
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import Estimate, RMESettings, faulty
 from rme_levels import LevelMap, Levels
@@ -28,15 +29,22 @@ class RME(Streaming):
     estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update.
     calibration: the robot's error model (error_model.ErrorModel, or the JSON of `python rme.py calibrate LOG --save`;
     None: an uncalibrated Panda), which says how far tau_ext may stray from the payload's torque in a window taken
-    as it is (absolute) and in one referred to the level before a change."""
+    as it is (absolute) and in one referred to the level before a change.
+    tool (ours): a known tool on the flange (motion.tool_forms: a Tool, a dict with mass, com, inertia in the flange
+    frame F, or a tool.json path) that Desk does not have: its weight's torque Y(q) phi_tool is subtracted from
+    tau_ext as each sample arrives (so RME estimates only what is added to it; a window referred to a level taken with
+    the tool on has it cancelled already) and its compensation is returned with RME's. Its inertial torque in motion
+    is not (below 0.05 Nm at the arm's usual speeds)."""
 
     def __init__(self, robot: Robot | None = None, weights: str | None = WEIGHTS, settings: RMESettings = RMESettings(),
-                 rng: np.random.Generator | None = None, correction=None, executor=None, calibration=None):
+                 rng: np.random.Generator | None = None, correction=None, executor=None, calibration=None, tool=None):
         self.robot = Robot.panda() if robot is None else robot
         self.error_model = as_error_model(calibration, self.robot.n)
         if len(self.error_model.absolute) != self.robot.n:
             raise ValueError(f"calibration: expected an error model of {self.robot.n} joints, found "
                              f"{len(self.error_model.absolute)} ({self.error_model.source})")
+        self.tool = None if tool is None else load_tool(tool)        # ValueError naming what is wrong
+        self._tool_phi = np.zeros(4) if tool is None else phi_of_tool(self.tool)   # (m, m c) in the ee frame
         self.settings, self.correction, self.executor = settings, correction, executor
         self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
                                                        #   a request; (generator, sample): a detection's steps
@@ -125,8 +133,10 @@ class RME(Streaming):
             raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
         if baseline is not None:
             tau = tau - as_states("baseline", baseline, n, allow_window=False)[0]
-        if not referred:
-            tau = tau - np.asarray(self.error_model.offset)          # the calibrated mean model error (absolute)
+        if not referred:                                             # an absolute window: the calibrated mean
+            tau = tau - np.asarray(self.error_model.offset)          #   model error, and the known tool's weight
+            if self.tool is not None:
+                tau = tau - self.robot.payload_regressor(q) @ self._tool_phi
         if self.correction is not None:
             dq = np.zeros_like(q) if dq is None else as_states("dq", dq, n)[0]
             if dq.shape != q.shape:
@@ -191,6 +201,9 @@ class RME(Streaming):
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
         _, R, J = self.robot.kinematics(q)                            # one kinematics pass per sample
         Y = self.robot.payload_regressor_from(J, R)
+        tool = Y @ self._tool_phi                                      # the known tool's weight (0 without one)
+        tau = tau - tool
+        self._tau[i] = tau
         tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         self._r[i] = r if self.correction is None or np.isfinite(r).all() else tau - tau_mm
@@ -237,7 +250,7 @@ class RME(Streaming):
         if self._queued is not None and self._job is None and self._steps is None and self._pending is None:
             asked, self._queued = self._queued, None   # under the compensation just applied
             self._on_detection(asked)
-        self._last = np.minimum(np.maximum(-tau_mm, -self._limit), self._limit)
+        self._last = np.minimum(np.maximum(-tau_mm - tool, -self._limit), self._limit)
         return self._last
 
     def _plausible(self, theta) -> bool:
@@ -313,14 +326,16 @@ class RME(Streaming):
         then(e, Ybar)
 
 
-if __name__ == "__main__":          # python rme.py diagnose|plot LOG ...: the script's entry, not part of the module
-    from diagnosis.diagnose import main
-    from diagnosis.calibrate import main as calibrate
-    from experiments.figures import plot_main
-    commands = {"diagnose": main, "calibrate": calibrate, "plot": lambda argv, prog: plot_main(argv)}
-    sys.exit(commands[sys.argv[1]](sys.argv[2:], prog=f"rme.py {sys.argv[1]}") if sys.argv[1:2] and sys.argv[1] in
-             commands else print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
-                                 "       python rme.py calibrate LOG [LOG ...] [--load none|fit] [--save FILE] [--json]\n"
-                                 "       python rme.py plot LOG [--out FILE]   (a franka.py --log run over time)\n"
-                                 "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)",
-                                 file=sys.stderr) or 2)
+if __name__ == "__main__":          # python rme.py diagnose|calibrate|identify|plot LOG ...: the script's entry
+    COMMANDS = {"diagnose": ("diagnosis.diagnose", "main"), "calibrate": ("diagnosis.calibrate", "main"),
+                "identify": ("robot.identify", "log_main"), "plot": ("experiments.figures", "plot_main")}
+    if sys.argv[1:2] and sys.argv[1] in COMMANDS:
+        import importlib
+        module, function = COMMANDS[sys.argv[1]]
+        sys.exit(getattr(importlib.import_module(module), function)(sys.argv[2:], prog=f"rme.py {sys.argv[1]}"))
+    print("usage: python rme.py diagnose LOG [--add EFFECT ...] [--json] [--plot FILE]\n"
+          "       python rme.py calibrate LOG [LOG ...] [--load none|fit] [--save FILE] [--json]\n"
+          "       python rme.py identify LOG [--reference REF] [--json] [--save tool.json]\n"
+          "       python rme.py plot LOG [--out FILE]   (a franka.py --log run over time)\n"
+          "(the estimator itself is a library: from rme import RME; demos: python sim.py --help)", file=sys.stderr)
+    sys.exit(2)

@@ -334,3 +334,91 @@ def test_own_cpu_keeps_the_loop_on_one_cpu_and_other_processes_off_it_then_resto
     finally:
         child.kill()                                   # its own process id
         child.wait(timeout=10)
+
+
+def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, capsys):
+    """franka.py --identify --sim --sim-tool on a fresh plant and tool (seeded draw): --json's mass, com, inertia
+    (flange frame) near the tool given, to the targets for mass (1 % or 10 g) and CoM (3 mm per axis) and to 40 % for
+    the inertia's diagonal (its 15 % target is missed on some tools: docs/tool_identification.md); the motion slow
+    and inside the limits, no push seen; the forms beside them; tool.json written."""
+    rng = np.random.default_rng(2032)
+    c = rng.normal(size=3)
+    tool = [rng.uniform(0.4, 1.5), *(c * rng.uniform(0.02, 0.1) / np.linalg.norm(c)), *rng.uniform(3e-3, 6e-3, 3)]
+    path = tmp_path / "tool.json"
+    log = tmp_path / "tool_run.npz"
+    assert franka.main(["--identify", "--sim", "--seed", "2", "--sim-tool", *map(str, tool), "--json",
+                        "--save", str(path), "--log", str(log)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    import subprocess                                   # the same run's log through rme.py identify, no reference
+    res = subprocess.run([sys.executable, "rme.py", "identify", str(log), "--json"], capture_output=True, text=True,
+                         cwd=os.path.dirname(os.path.abspath(__file__)), timeout=120)
+    from_log = json.loads(res.stdout)
+    assert res.returncode == 0 and set(from_log) >= {"mass", "com", "inertia", "desk", "libfranka_set_load"}
+    assert any("no reference motion" in n for n in from_log["fit"]["notes"])
+    assert abs(out["mass"] - tool[0]) < max(0.01 * tool[0], 0.01) and np.abs(np.subtract(out["com"], tool[1:4])).max() < 0.003
+    assert np.allclose(np.diag(out["inertia"]), tool[4:], rtol=0.4)
+    assert out["libfranka_set_load"]["F_x_Cload"] == out["com"] and out["franka_ros2_set_load"]["mass"] == out["mass"]
+    assert max(out["motion"]["max_abs_dq"]) < 0.5 and out["motion"]["min_limit_distance_rad"] >= 0.2
+    assert out["motion"]["seconds"] <= 20.0 and out["motion"]["abandoned_at_s"] is None
+    saved = json.loads(path.read_text())
+    assert saved["mass"] == out["mass"]
+
+
+def test_rme_with_a_known_tool_estimates_only_the_load_added_to_it():
+    """A window at rest whose tau_ext carries a tool and a 0.5 kg load: RME(tool=) finds the load, within the
+    tolerance RME reaches on its own (test_rme.py's static windows)."""
+    from motion.tool_forms import make_tool, phi_of_tool
+    robot, rng = Robot.panda(), np.random.default_rng(8)
+    tool = make_tool(0.9, [0.02, 0.01, 0.07], np.eye(3) * 3e-3)
+    q = np.tile(franka.Q_START, (200, 1)) + rng.normal(0, 1e-4, (200, 7))
+    load = np.array([0.5, 0.0, 0.0, 0.1])
+    tau = robot.payload_regressor(q) @ (phi_of_tool(tool) + np.array([0.5, 0.0, 0.0, 0.05])) + \
+        rng.normal(0, 0.02, (200, 7))
+    est = RME(robot, tool=tool).estimate(q, tau)
+    assert abs(est.mean[0] - load[0]) < 0.05 and np.abs(est.mean[1:3]).max() < 0.02
+    plain = RME(robot).estimate(q, tau)                          # without the tool: the sum
+    assert abs(plain.mean[0] - 1.4) < 0.1
+
+
+def test_identify_refuses_a_dry_run_and_a_sim_tool_without_the_sim():
+    with pytest.raises(ValueError, match="--identify"):
+        franka.main(["--identify", "--robot-ip", "172.16.0.2", "--dry-run"])
+    with pytest.raises(ValueError, match="--sim-tool"):
+        franka.main(["--identify", "--robot-ip", "172.16.0.2", "--sim-tool", "1", "0", "0", "0.05", "1e-3", "1e-3",
+                     "1e-3"])
+    with pytest.raises(ValueError, match="--sim-tool.mass"):
+        franka.main(["--identify", "--sim", "--sim-tool", "-1", "0", "0", "0.05", "1e-3", "1e-3", "1e-3"])
+
+
+@pytest.mark.parametrize("tool, match", [({"mass": 1.0, "com": [0, 0, 0]}, "inertia"), ("/no/such/tool.json", "read"),
+                                         ({"mass": -1, "com": [0, 0, 0], "inertia": np.eye(3).tolist()}, "mass"), (3, "tool")])
+def test_rme_refuses_a_bad_tool_naming_it(tool, match):
+    with pytest.raises(ValueError, match=match):
+        RME(Robot.panda(), weights=None, tool=tool)
+
+
+def test_estimator_spec_refuses_a_missing_tool_file():
+    from robot.worker import EstimatorSpec
+    with pytest.raises(ValueError, match="tool"):
+        EstimatorSpec(tool="/no/such/tool.json")
+
+
+def test_rme_with_a_tool_compensates_its_weight_from_the_first_sample():
+    from motion.tool_forms import make_tool, phi_of_tool
+    robot = Robot.panda()
+    tool = make_tool(0.9, [0.02, 0.01, 0.07], np.eye(3) * 3e-3)
+    q = np.array(franka.Q_START)
+    tau = robot.payload_regressor(q) @ phi_of_tool(tool)
+    comp = RME(robot, weights=None, tool=tool).update(q, np.zeros(7), tau)
+    assert np.allclose(comp, -robot.payload_torque(q, [0.9, *(np.linalg.inv(_ee_in_f()) @ [0.02, 0.01, 0.07])]))
+
+
+def _ee_in_f():
+    """The ee frame's axes in the flange frame F: panda.xml's ee site relative to its flange site (MuJoCo's own)."""
+    robot = Robot.panda()
+    import mujoco
+    m, d = robot.model, mujoco.MjData(robot.model)
+    mujoco.mj_forward(m, d)
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s) for s in ("flange", "ee")]
+    Rf, Re = (d.site_xmat[i].reshape(3, 3) for i in ids)
+    return Rf.T @ Re

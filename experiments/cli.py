@@ -43,6 +43,8 @@ DEMOS = {
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
                 "experiments.explore_demo:explore", ("seed", "json")),
+    "identify-bench": ("the tool on the flange identified from its motion: random tools, errors beside the targets",
+                       "experiments.tool_bench:identify_bench", ("preset", "seed", "json", "tools")),
     "inertia": ("the payload's inertia from motion and its compensation on a wrist-turning limit cycle (about 1 min)",
                 "experiments.inertia_demo:inertia_demo", ("seed", "json")),
 }
@@ -58,6 +60,7 @@ FLAGS = {
     "dir": (("dir",), dict(metavar="DIR", help="a folder of libfranka-style CSV or franka.py .npz logs")),
     "calibration": (("--calibration",), dict(metavar="FILE", default=None,
                                              help="RME's error model (python rme.py calibrate LOG --save FILE)")),
+    "tools": (("--tools",), dict(type=int, default=5, help="random tools")),
 }
 
 

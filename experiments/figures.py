@@ -252,11 +252,11 @@ def plot_run(path, log, history, robot, title, quiet=False):
         save(fig, path, sys.stderr if quiet else None)
 
 
-def plot_main(argv) -> int:
+def plot_main(argv, prog: str = "rme.py plot") -> int:
     """`python rme.py plot LOG [--out FILE]`: the figure of a franka.py --log .npz (default FILE: LOG with .png);
     returns the exit status."""
     import argparse
-    ap = argparse.ArgumentParser(prog="rme.py plot", description="the figure of a franka.py --log run: the estimate "
+    ap = argparse.ArgumentParser(prog=prog, description="the figure of a franka.py --log run: the estimate "
                                  "over time with its 2-sigma band, the estimates, how far the hand moved")
     ap.add_argument("log", metavar="LOG", help="the .npz franka.py --log wrote")
     ap.add_argument("--out", metavar="FILE", help="the figure (default: LOG with .png)")

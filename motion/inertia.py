@@ -68,6 +68,8 @@ class FitSettings:
     gap: float = 1e-6                                # the projection stops within this share of its cost (at
                                                      #   least 1) of the optimum, whitened (chi-square units)
     max_steps: int = 100                             # Newton steps of the projection at most (it takes 20-40)
+    offsets: bool = True                             # each joint's unknown offset b partialled out (False: b = 0,
+                                                     #   the torques already referred to a reference)
 
 
 @dataclass
@@ -128,7 +130,7 @@ def fit_steps(S, phi0, phi_cov=None, settings: FitSettings = FitSettings()):
     if N < 2:
         cov = np.linalg.inv(Pinv)
         return mean, FitInfo("no data", int(N), np.sqrt(np.diag(cov)), cov, np.full(n, np.nan), mean, 0, np.ones(n))
-    mu = S[:, :11, 11] / N                                     # (n, 11) the means of (Y_j, tau_j)
+    mu = S[:, :11, 11] / N if settings.offsets else np.zeros((n, 11))   # (n, 11) the means of (Y_j, tau_j)
     C = S[:, :11, :11] - N * mu[:, :, None] * mu[:, None, :]   # (n, 11, 11) centred: the offsets b partialled out
     w = np.ones(n)
     for _ in range(2):                                         # weights from the residual of the pass before
@@ -136,7 +138,7 @@ def fit_steps(S, phi0, phi_cov=None, settings: FitSettings = FitSettings()):
         w = 1.0 / np.maximum(np.sqrt(_rss(C, x) / N), settings.min_noise)
         yield
     x, G = _weighted_solve(C, w, Pinv, mean)
-    dof = max(N * n - n - 10, 1)
+    dof = max(N * n - n * settings.offsets - 10, 1)
     s2 = max(np.sum(w ** 2 * _rss(C, x)) / dof, 1e-12)        # whitened residual variance (about 1)
     cov = s2 * np.linalg.inv(G)
     yield

@@ -34,14 +34,15 @@ def paper_tau_ext(tau_ext_hat_filtered) -> np.ndarray:
 class SimBackend:
     """The project's MuJoCo plant (sim.Plant, realistic preset) behind libfranka's interface: it reports
     tau_ext_hat_filtered = -tau_ext (the plant's tau_ext is in the paper's sign) and adds the nominal model's gravity
-    to each command, as the robot does. payload: (t [s], m [kg], r (3,) [m]) changes scheduled on the plant.
+    to each command, as the robot does. payload: (t [s], m [kg], r (3,) [m][, inertia (3, 3) about the CoM]) changes
+    scheduled on the plant (ee frame).
     paced: the states come at the plant's rate in wall time (1 kHz; late cycles are not caught up), else at once."""
 
     def __init__(self, rng: np.random.Generator, q0=Q_START, payload=(), preset="realistic", paced=False):
         from sim import Plant, PlantConfig
         self.plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
-        for t, m, r in payload:
-            self.plant.schedule_payload(t, m, r)
+        for t, m, r, *inertia in payload:              # (t, m, r) or (t, m, r, inertia about the CoM (3, 3))
+            self.plant.schedule_payload(t, m, r, *inertia)
         self._s = self.plant.reset(q0)
         self.paced, self._tick = paced, None           # paced: read() returns at most one state per dt of wall time
         self.initial = self.read()                     # the state before control starts

@@ -29,9 +29,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))   # the proje
 @dataclass(frozen=True)
 class EstimatorSpec:
     """What a worker process needs to rebuild the loop's estimator: the arm's MJCF path and ee site, the network
-    weights (None: zero prior mean), the settings, the seed of its Generator (the VI's sampling) and an optional
-    correction model file (diagnosis.effect_model.Model.save) and error-model file (`rme.py calibrate --save`).
-    build() gives the RME; same spec, same estimates."""
+    weights (None: zero prior mean), the settings, the seed of its Generator (the VI's sampling), an optional
+    correction model file (diagnosis.effect_model.Model.save), error-model file (`rme.py calibrate --save`) and
+    tool.json. build() gives the RME; same spec, same estimates."""
     xml_path: str = PANDA_XML
     ee: str = "ee"
     weights: str | None = WEIGHTS
@@ -39,9 +39,10 @@ class EstimatorSpec:
     seed: int = 0
     correction: str | None = None
     calibration: str | None = None
+    tool: str | None = None            # a tool.json (motion.tool_forms): the known tool on the flange
 
     def __post_init__(self):
-        for name in ("xml_path", "weights", "correction", "calibration"):
+        for name in ("xml_path", "weights", "correction", "calibration", "tool"):
             path = getattr(self, name)
             if path is not None and not os.path.isfile(path):
                 raise ValueError(f"{name}: expected a file, found no file at {path!r}")
@@ -60,7 +61,7 @@ class EstimatorSpec:
             from diagnosis.effect_model import Model
             correction = Model.load(self.correction, robot)
         return RME(robot, weights=self.weights, settings=self.settings, rng=np.random.default_rng(self.seed),
-                   correction=correction, executor=executor, calibration=self.calibration)
+                   correction=correction, executor=executor, calibration=self.calibration, tool=self.tool)
 
 
 class ThreadWorker:

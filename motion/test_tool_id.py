@@ -1,0 +1,148 @@
+"""The tool's identification: its frames and forms (against MuJoCo with the tool as a body on the flange), the
+motion's bounds, the push that stops it (the fit on the realistic plant: test_franka.py, through franka.py)."""
+import json
+import os
+
+import mujoco
+import numpy as np
+import pytest
+
+import franka
+from dynamics import PANDA_XML, Q_READY, Robot
+from motion.tool_forms import (desk, load_tool, make_tool, params_of_tool, ros2_set_load, save_tool, set_load,
+                               tool_of_desk, tool_of_params, tool_of_ros2, tool_of_set_load)
+from motion.tool_id import fit_tool
+from motion.tool_motion import ExcitationController, MotionSettings, excitation
+from robot.identify import run_motion, sim_backend
+
+
+def random_tool(rng):
+    """A tool of the benchmark's range: 0.4-1.5 kg, CoM 2-10 cm from the flange, principal moments 1e-3..1e-2
+    kg m^2 (physical), principal axes turned at random."""
+    c = rng.normal(size=3)
+    c *= rng.uniform(0.02, 0.10) / np.linalg.norm(c)
+    while True:
+        w = 10 ** rng.uniform(-3, -2, 3)
+        if w.sum() >= 2 * w.max():
+            break
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return make_tool(rng.uniform(0.4, 1.5), c, Q @ np.diag(w) @ Q.T)
+
+
+def close(a, b):
+    return np.isclose(a.mass, b.mass, atol=1e-12) and np.allclose(a.com, b.com, atol=1e-12) and \
+        np.allclose(a.inertia, b.inertia, atol=1e-14)
+
+
+def test_every_form_round_trips_and_the_inertia_is_column_major():
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        tool = random_tool(rng)
+        assert close(tool_of_set_load(set_load(tool)), tool)
+        assert close(tool_of_ros2(ros2_set_load(tool)), tool)
+        d = desk(tool)                                          # rounded to what Desk's fields take
+        back = tool_of_desk(d)
+        assert abs(back.mass - tool.mass) < 1e-4 and np.abs(back.com - tool.com).max() < 1e-5
+        assert np.abs(back.inertia - tool.inertia).max() < 1e-6
+        assert close(tool_of_params(params_of_tool(tool)), tool)
+        col = np.array(set_load(tool)["load_inertia"])
+        assert [col[1], col[2], col[5]] == [tool.inertia[1, 0], tool.inertia[2, 0], tool.inertia[2, 1]]
+
+
+def test_tool_json_round_trips(tmp_path):
+    tool = random_tool(np.random.default_rng(3))
+    path = tmp_path / "tool.json"
+    save_tool(path, tool, {"status": "ok"})
+    assert close(load_tool(str(path)), tool)
+    d = json.loads(path.read_text())
+    assert d["identification"] == {"status": "ok"} and np.allclose(d["inertia"], tool.inertia)
+
+
+def _with_tool_body(tool, path):
+    """panda.xml with the tool as a MuJoCo body on the flange site (link 7's z, no rotation: libfranka's F)."""
+    xml = open(PANDA_XML).read()
+    I = tool.inertia
+    body = (f'<body name="tool" pos="0 0 0.107"><inertial pos="{tool.com[0]} {tool.com[1]} {tool.com[2]}" '
+            f'mass="{tool.mass}" fullinertia="{I[0, 0]} {I[1, 1]} {I[2, 2]} {I[0, 1]} {I[0, 2]} {I[1, 2]}"/></body>')
+    marker = '<site name="flange" pos="0 0 0.107" size="0.01"/>'
+    assert marker in xml
+    open(path, "w").write(xml.replace(marker, marker + body))
+    return mujoco.MjModel.from_xml_path(str(path))
+
+
+def test_flange_frame_tool_matches_mujoco_with_the_tool_as_a_body(tmp_path):
+    """-body_regressor(q, dq, ddq) @ params_of_tool(tool) (the project's ee frame) equals the inverse dynamics of
+    MuJoCo's model with the tool added as a body in F, less the model without it, at random states."""
+    rng = np.random.default_rng(5)
+    robot = Robot.panda()
+    for _ in range(3):
+        tool = random_tool(rng)
+        m = _with_tool_body(tool, tmp_path / "with_tool.xml")
+        d = mujoco.MjData(m)
+        for _ in range(3):
+            q, dq, ddq = Q_READY + rng.uniform(-0.5, 0.5, 7), rng.normal(size=7), rng.normal(size=7)
+            d.qpos[:], d.qvel[:], d.qacc[:] = q, dq, ddq
+            mujoco.mj_inverse(m, d)
+            extra = d.qfrc_inverse - robot.inverse_dynamics(q, dq, ddq)
+            pred = -robot.body_regressor(q, dq, ddq) @ params_of_tool(tool)
+            assert np.allclose(pred, extra, atol=1e-9), (pred, extra)
+
+
+@pytest.mark.parametrize("bad, match", [(dict(mass=-1.0), "mass"), (dict(com=[0, 0, 2.0]), "com"),
+                                        (dict(inertia=np.diag([1e-3, 1e-3, 1e-2])), "inertia"),
+                                        (dict(inertia=[[1e-3, 1e-4, 0], [0, 1e-3, 0], [0, 0, 1e-3]]), "inertia")])
+def test_a_bad_tool_is_refused_naming_the_field(bad, match):
+    args = dict(mass=1.0, com=[0.0, 0.0, 0.05], inertia=np.eye(3) * 1e-3) | bad
+    with pytest.raises(ValueError, match=match):
+        make_tool(**args)
+
+
+def test_excitation_keeps_its_margin_speed_and_duration_from_random_start_poses():
+    rng, robot, s = np.random.default_rng(7), Robot.panda(), MotionSettings()
+    lo, hi = robot.model.jnt_range.T
+    for _ in range(5):
+        q0 = Q_READY + rng.uniform(-0.4, 0.4, 7)
+        q, dq, ddq = excitation(robot, q0, s)
+        assert np.all(q >= lo + s.margin - 1e-9) and np.all(q <= hi - s.margin + 1e-9)
+        assert np.abs(dq).max() <= s.max_speed * 1.01 and len(q) / s.rate <= s.max_duration
+        assert np.allclose(q[0], q0) and np.allclose(q[-1], q0) and np.abs(dq[[0, -1]]).max() < 1e-3
+    q0 = Q_READY.copy()
+    q0[5] = lo[5] + 0.1                                         # joint 6 within the margin of its limit
+    with pytest.raises(ValueError, match="joint 6"):
+        excitation(robot, q0, s)
+
+
+def test_a_push_abandons_the_motion_at_once():
+    """A 25 N push on the hand 3 s into the motion: abandoned within 50 ms, the arm then slows to rest."""
+    robot, tool = Robot.panda(), random_tool(np.random.default_rng(4))
+    backend = sim_backend(4, tool, 0)
+    backend.plant.push([0.0, 25.0, 0.0], body="link7", start=backend.plant.t + 3.0, duration=0.5)
+    log, summary, ctrl = run_motion(backend, robot, franka.run_loop, MotionSettings(), seconds=5.5)
+    assert summary["abandoned_at_s"] is not None and 3.0 <= summary["abandoned_at_s"] <= 3.05
+    late = log["t"] > summary["abandoned_at_s"] + 2.0
+    assert np.abs(log["dq"][late]).max() < 0.05
+
+
+def test_a_motion_too_short_for_a_fit_is_refused():
+    robot = Robot.panda()
+    q = np.tile(Q_READY, (100, 1))
+    with pytest.raises(ValueError, match="samples"):
+        fit_tool(robot, q, 0 * q, 0 * q, 0 * q)
+
+
+def test_ee_in_f_is_the_ee_site_seen_from_the_flange_site():
+    from motion.tool_forms import EE_IN_F
+    m = Robot.panda().model
+    d = mujoco.MjData(m)
+    d.qpos[:] = Q_READY + np.random.default_rng(1).uniform(-0.3, 0.3, 7)
+    mujoco.mj_forward(m, d)
+    Rf, Re = (d.site_xmat[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s)].reshape(3, 3) for s in ("flange", "ee"))
+    assert np.allclose(Rf.T @ Re, EE_IN_F, atol=1e-12)
+
+
+def test_a_reference_of_another_motion_is_refused():
+    robot, s = Robot.panda(), MotionSettings()
+    q, dq, ddq = excitation(robot, Q_READY, s)
+    other = excitation(robot, Q_READY + np.array([0, 0, 0, 0, 0.3, 0, 0]), s)
+    with pytest.raises(ValueError, match="same motion"):
+        fit_tool(robot, q, dq, ddq, 0 * q, reference=(other[0], other[1], other[2], 0 * q))

@@ -1,0 +1,174 @@
+"""The tool-identification motion about the start pose: a slow cone of the flange's axis (gravity seen from every side:
+all three CoM axes), then small wrist oscillations (inertia), within joint limits and a speed limit, tracked by a
+joint-space spring-damper; a push (tau_ext leaving the tool's weight) abandons it at once."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dynamics import Robot, as_states
+
+WRIST = (4, 5, 6)                  # joints 5, 6, 7 (0-based): they turn the flange; the upper arm stays still
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    rate: float = 1000.0           # Hz, the torque loop
+    max_speed: float = 0.4         # rad/s, peak reference speed of any joint (the target is < 0.5 rad/s measured,
+    #                                with room for tracking overshoot)
+    margin: float = 0.2            # rad kept from every joint limit by the reference (the target)
+    tilt: float = 0.5              # rad: the cone's half-angle in joints 5 and 6 (29 deg: gravity's part across
+    #                                the flange axis reaches sin 0.5 = 0.48 g, so the CoM along that axis is seen)
+    rest: float = 0.75             # s at rest at the start (the push watch's first rows, its compensation fading
+    #                                in) and at the end
+    ramp: float = 0.25             # share of the cone over which its amplitude rises (and falls: cosine ramps)
+    turns: float = 1.0             # cone turns
+    shake: float = 8.0             # s of wrist oscillations after the cone
+    shake_hz: tuple = (1.1, 1.3, 1.5)   # Hz, joints 5, 6, 7: distinct, so the three axes' accelerations differ
+    #                                (ours: 2-3 rad/s^2, a 5e-3 kg m^2 inertia 0.01-0.015 Nm; at 2-3 Hz the arm
+    #                                tracks less alike with and without the tool: one realistic tool's diagonal came
+    #                                out 18-26 % low there, 2-6 % at 1.1-1.5 Hz, docs/tool_identification.md)
+    max_duration: float = 20.0     # s: the whole motion at most (the target)
+    kp: tuple = (600.0,) * 4 + (50.0,) * 3     # Nm/rad: cpic.JointHold's gains (stiff enough that a 3 kg load moves
+    kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad   the arm by a few mrad)
+    soft: float = 0.1              # after a push the spring is kp x soft about where the arm is (a person moves it)
+    push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushWatch:
+    #                                with nobody touching, 0.24-0.80 Nm measured on the realistic plant; a force at
+    #                                the flange of 7-14 N, by its direction, crosses them at the ready pose)
+    push_samples: int = 10         # consecutive samples (10 ms) above it (a single stale or noisy sample is not one)
+    compensate: bool = True        # the watch's static fit Y phi + b is compensated: the arm follows the reference
+    #                                alike with and without the tool (a 1 kg tool's weight otherwise sags joint 6 by
+    #                                0.025 rad, and the arm's own pose-dependent error differs by that much)
+    settle: float = 0.25           # s: the watch starts after this (a momentum observer, K = 100 /s, and the first
+    #                                commands settle; the reference is at rest until settings.rest); its
+    #                                compensation then fades in over 0.2 s (the arm's whole static torque: no jolt)
+
+
+def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings()):
+    """The reference q_d, dq_d, ddq_d (T, n) at settings.rate: rest, the cone (joints 5, 6 of amplitude a e(t),
+    e a cosine ramp), the oscillations of joints 5-7 (each A sin(2 pi f t) under a ramp, A = v / (2 pi f)), rest.
+    Each joint's amplitude is cut to stay settings.margin from its limits; the time is scaled so no joint exceeds
+    settings.max_speed. ValueError if q0 is already within the margin of a limit or the motion is too long."""
+    s, n = settings, robot.n
+    q0 = as_states("q0", q0, n, allow_window=False)[0][0]
+    lo, hi = robot.model.jnt_range[:, 0] + s.margin, robot.model.jnt_range[:, 1] - s.margin
+    if np.any(q0 < lo) or np.any(q0 > hi):
+        j = int(np.argmax((q0 < lo) | (q0 > hi)))
+        raise ValueError(f"q0: expected every joint at least {s.margin} rad inside its limits, found joint {j + 1} at "
+                         f"{q0[j]:.3f} rad (limits {lo[j] - s.margin:.3f}..{hi[j] + s.margin:.3f})")
+    room = np.minimum(q0 - lo, hi - q0)                         # (n,) what each joint may swing
+    dt = 1.0 / s.rate
+    a5, a6 = (min(s.tilt, room[j]) for j in WRIST[:2])
+    tau = np.linspace(0.0, 1.0, 2001)                          # the cone in normalised time, then stretched so
+    e1, th = _ramp(tau, s.ramp, 1.0), 2 * math.pi * s.turns * tau   # its fastest joint moves at max_speed
+    v1 = max(np.abs(np.gradient(a5 * e1 * np.sin(th), tau)).max(), np.abs(np.gradient(a6 * e1 * np.cos(th), tau)).max())
+    t1 = np.arange(0.0, v1 / s.max_speed, dt)
+    e1, th = _ramp(t1 / t1[-1], s.ramp, 1.0), 2 * math.pi * s.turns * t1 / t1[-1]
+    d = np.zeros((len(t1), n))
+    d[:, WRIST[0]], d[:, WRIST[1]] = a5 * e1 * np.sin(th), a6 * e1 * np.cos(th)
+    t2 = np.arange(0.0, s.shake, dt)
+    e2 = _ramp(t2 / s.shake, 1.0 / s.shake, 1.0)
+    d2 = np.zeros((len(t2), n))
+    for j, f in zip(WRIST, s.shake_hz):
+        A = min(s.max_speed / 1.3 / (2 * math.pi * f), room[j])   # 1.3: the ramp's share
+        d2[:, j] = A * e2 * np.sin(2 * math.pi * f * t2)
+    rest = np.zeros((int(round(s.rest * s.rate)), n))
+    D = np.vstack([rest, d, d2, rest])
+    if len(D) * dt > s.max_duration + 1e-9:
+        raise ValueError(f"settings: the motion lasts {len(D) * dt:.1f} s, expected at most {s.max_duration} s")
+    q = q0 + D
+    dq = np.gradient(q, dt, axis=0)
+    ddq = np.gradient(dq, dt, axis=0)
+    return q, dq, ddq
+
+
+def _ramp(t, ramp, end):
+    """e(t) (T,): 0 -> 1 over [0, ramp] and 1 -> 0 over [end - ramp, end], cosine-shaped (zero slope at both ends)."""
+    up = np.clip(t / ramp, 0.0, 1.0)
+    down = np.clip((end - t) / ramp, 0.0, 1.0)
+    return 0.25 * (1 - np.cos(math.pi * up)) * (1 - np.cos(math.pi * down))
+
+
+class PushWatch:
+    """Whether tau_ext (paper sign) has left what the tool's weight predicts. H0, no contact: tau_ext = Y(q) phi + b
+    + friction + the arm's own model error + the tool's small inertial torque; H1, a person pushes with F at the
+    hand: J^T F more. phi (4,) and the offsets b (n,) are least squares on the rows so far (one every 10 samples,
+    refitted every 20), so the watch needs no tool known in advance; a push is |r_j| = |tau_ext_j - Y_j phi - b_j|
+    above settings.push[j] on a joint for settings.push_samples samples in a row (the thresholds: the largest H0
+    residual on the realistic plant over the motion with margin, docs/tool_identification.md)."""
+
+    def __init__(self, robot: Robot, settings: MotionSettings = MotionSettings()):
+        self.robot, self.settings, n = robot, settings, robot.n
+        self._S = np.zeros((n, 6, 6))                       # per joint sum of z z^T, z = (Y_j (4), tau_j, 1)
+        self._phi, self._b, self._k, self._over = np.zeros(4), None, 0, 0
+        self.start = int(round(settings.settle * settings.rate))   # samples before the watch starts
+        self._limit = np.asarray(settings.push, dtype=float)
+        self._prior = np.diag(1.0 / np.square([10.0, 1.0, 1.0, 1.0]))   # kg, kg m: keeps phi finite at one pose
+        self.residual = np.zeros(n)                         # the last r (n,) [Nm]
+        self.predicted = np.zeros(n)                        # the last Y phi + b (n,) [Nm] (0 before the watch starts)
+        self.peak = np.zeros(n)                             # its largest |r| per joint so far
+
+    def update(self, q, tau_ext) -> bool:
+        """Feed one sample; True from the sample the push is confirmed on."""
+        self._k += 1
+        if self._k <= self.start:
+            return False
+        Y = self.robot.payload_regressor(q)                 # (n, 4)
+        tau = np.asarray(tau_ext, dtype=float)
+        if self._k % 10 == 0 or self._b is None:
+            z = np.concatenate([Y, tau[:, None], np.ones((len(tau), 1))], axis=1)   # (n, 6)
+            self._S += z[:, :, None] * z[:, None, :]
+        if self._k % 20 == 0 or self._b is None:
+            self._refit()
+        self.predicted = Y @ self._phi + self._b
+        self.residual = tau - self.predicted
+        self.peak = np.maximum(self.peak, np.abs(self.residual))
+        self._over = self._over + 1 if np.any(np.abs(self.residual) > self._limit) else 0
+        return self._over >= self.settings.push_samples
+
+    def _refit(self):
+        S = self._S
+        N = S[0, 5, 5]
+        mu = S[:, :5, 5] / N                                # (n, 5) means of (Y_j, tau_j)
+        C = S[:, :5, :5] - N * mu[:, :, None] * mu[:, None, :]
+        self._phi = np.linalg.solve(C[:, :4, :4].sum(axis=0) + self._prior, C[:, :4, 4].sum(axis=0))
+        self._b = mu[:, 4] - mu[:, :4] @ self._phi
+
+
+class ExcitationController:
+    """Tracks excitation(robot, q0) with tau = ID(q, dq, ddq_d) + Kp (q_d - q) + Kd (dq_d - dq) (the nominal model's
+    inverse dynamics, a spring-damper to the moving reference: at 0.4 rad/s a person meets a spring, never a fast
+    arm), less the watch's fit of the static tau_ext (settings.compensate). On a push (PushWatch) the motion is
+    abandoned at once: the reference stops where the arm is, the spring drops to settings.soft of its stiffness and
+    the compensation keeps the fit of the samples before the push. step(q, dq, compensation, tau_ext) -> (tau (n,),
+    None) as cpic's controllers; after the reference it holds its last point. abandoned: the time [s] of the push or
+    None."""
+
+    def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings()):
+        self.robot, self.settings = robot, settings
+        self.q_d, self.dq_d, self.ddq_d = excitation(robot, q0, settings)
+        self.kp, self.kd = np.asarray(settings.kp, float), np.asarray(settings.kd, float)
+        self.watch = PushWatch(robot, settings)
+        self.k, self.abandoned, self._hold = 0, None, None
+
+    @property
+    def duration(self) -> float:
+        return len(self.q_d) / self.settings.rate
+
+    def step(self, q, dq, compensation=None, tau_ext=None):
+        q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
+        if self.abandoned is None and tau_ext is not None and self.watch.update(q, tau_ext):
+            self.abandoned, self._hold = self.k / self.settings.rate, q.copy()
+        if self._hold is not None:
+            tau = self.robot.gravity(q) + self.settings.soft * self.kp * (self._hold - q) - self.kd * dq
+        else:
+            i = min(self.k, len(self.q_d) - 1)
+            tau = self.robot.inverse_dynamics(q, dq, self.ddq_d[i]) + self.kp * (self.q_d[i] - q) + \
+                self.kd * (self.dq_d[i] - dq)
+        if self.settings.compensate:                     # tau_ext's sign: the torque the tool applies, undone, faded
+            fade = min(max((self.k - self.watch.start) / (0.2 * self.settings.rate), 0.0), 1.0)   # in over 0.2 s
+            tau = tau - fade * self.watch.predicted
+        self.k += 1
+        return (tau if compensation is None else tau + compensation), None

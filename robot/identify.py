@@ -1,0 +1,168 @@
+"""Identifying the tool on the flange end to end: the excitation motion on a backend (franka.py --identify), the fit
+from a run or a log (python rme.py identify LOG), the report in the forms users type in and tool.json."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from diagnosis.logs import load_log, prepare
+from dynamics import Robot
+from motion.inertia import rigid_body
+from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
+from motion.tool_id import NAMES, ToolFit, fit_tool, truth_of
+from motion.tool_motion import ExcitationController, MotionSettings
+
+NOISE_STREAM = 1000     # the --sim plant's sensor noise of run k is drawn from seed + NOISE_STREAM + k
+
+
+def sim_payload(values, later=()) -> list:
+    """SimBackend's payload events for --sim-tool M CX CY CZ IXX IYY IZZ (flange frame F, inertia about the CoM),
+    checked (ValueError naming --sim-tool), in the ee frame: the tool from t = 0, then each later (t, m, r_ee) load
+    as one body with the tool (the plant holds one body on the flange; pi adds about the same origin)."""
+    tool = make_tool(values[0], values[1:4], np.diag(values[4:7]), "--sim-tool")
+    events = [(0.0, tool)]
+    for t, m, r in later:
+        events.append((t, tool_of_params(params_of_tool(tool) + rigid_body(m, r))))
+    R = EE_IN_F
+    return [(t, b.mass, R.T @ b.com, R.T @ b.inertia @ R) for t, b in events]
+
+
+def sim_backend(seed: int, tool=None, run: int = 0, preset: str = "realistic"):
+    """robot.backends.SimBackend: the same simulated robot for every run of a seed (its link errors and sensor bias
+    map drawn from default_rng(seed)), fresh sensor noise per run, with the Tool `tool` (flange frame) fixed."""
+    from robot.backends import SimBackend
+    R = EE_IN_F
+    payload = [] if tool is None else [(0.0, tool.mass, R.T @ tool.com, R.T @ tool.inertia @ R)]
+    backend = SimBackend(np.random.default_rng(seed), payload=payload, preset=preset)
+    backend.plant.rng = np.random.default_rng(seed + NOISE_STREAM + run)
+    return backend
+
+
+def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings(), seconds=None):
+    """The excitation about backend.initial.q through franka's run_loop (for `seconds`, default: all of it):
+    (log arrays, summary, controller)."""
+    controller = ExcitationController(robot, backend.initial.q, settings)
+    seconds = controller.duration if seconds is None else seconds
+    summary, log = run_loop(backend, robot, controller, None, seconds, print_every=np.inf)
+    summary["abandoned_at_s"] = controller.abandoned
+    summary["push_watch_peak_Nm"] = controller.watch.peak.round(3).tolist()   # the largest |r| per joint seen
+    summary["max_abs_dq"] = np.abs(log["dq"]).max(axis=0).round(4).tolist() if len(log["dq"]) else []
+    lo, hi = robot.model.jnt_range.T
+    room = np.minimum(log["q"] - lo, hi - log["q"])
+    summary["min_limit_distance_rad"] = float(room.min()) if len(room) else None
+    return log, summary, controller
+
+
+def prepared(log: dict):
+    """A franka.py run's arrays as a diagnosis Log (stale rows dropped, filtered, ddq)."""
+    return prepare({k: np.asarray(log[k]) for k in ("t", "q", "dq", "tau_J", "tau_ext") if k in log}, source="run")
+
+
+def torque_of(robot: Robot, log) -> np.ndarray:
+    """tau_ext (T, n), paper sign, for the fit: the model's M ddq + C dq + G less tau_J when the log has tau_J (the
+    same filter on both, no observer lag), else the log's own tau_ext."""
+    if log.tau_J is not None:
+        return robot.inverse_dynamics(log.q, log.dq, log.ddq) - log.tau_J
+    if log.tau_ext is None:
+        raise ValueError("log: expected tau_J or tau_ext columns, found neither")
+    return log.tau_ext
+
+
+def fit_logs(robot: Robot, log, reference=None) -> ToolFit:
+    """fit_tool on a prepared Log, referred to the prepared Log `reference` (the flange empty) when given."""
+    ref = None if reference is None else (reference.q, reference.dq, reference.ddq, torque_of(robot, reference))
+    return fit_tool(robot, log.q, log.dq, log.ddq, torque_of(robot, log), reference=ref)
+
+
+def report(fit: ToolFit, truth=None, motion: dict | None = None) -> dict:
+    """What --json prints: mass, com, inertia (F) and the three forms, the fit per parameter, the motion's figures,
+    and beside a known tool its error per parameter."""
+    out = {**forms(fit.tool), "fit": fit.report()}
+    if motion is not None:
+        out["motion"] = motion
+    if truth is not None:
+        t = truth_of(truth)
+        out["truth"] = t
+        out["error"] = {k: fit.value[k] - t[k] for k in NAMES}
+    return out
+
+
+def format_text(rep: dict) -> str:
+    """The report for a person: each parameter with its interval and whether the motion saw it, then the forms."""
+    lines = ["tool on the flange (flange frame F; inertia about the CoM)"]
+    for k, p in rep["fit"]["parameters"].items():
+        unit = "kg" if k == "mass" else "m" if k.startswith("com") else "kg m^2"
+        seen = "" if p["observed"] else "   NOT OBSERVED by this motion"
+        lines.append(f"  {k:6s} {p['value']:+.5f} {unit:6s} 2 std {2 * p['std']:.5f}{seen}")
+    lines += [f"  note: {n}" for n in rep["fit"]["notes"]]
+    d, s = rep["desk"], rep["libfranka_set_load"]
+    lines += ["this is everything on the flange (the model's arm has no hand): enter it in Desk as the end effector,",
+              "or set Desk's end effector to none and send it by setLoad / SetLoad (not both):",
+              "Desk (Settings > End effector), flange frame:",
+              f"  mass {d['mass']} kg, center of mass {d['center_of_mass']} m, inertia {d['inertia']} kg m^2",
+              "libfranka (added to Desk's end effector; refused while a controller runs):", f"  {s['call']}",
+              "franka_ros2:", f"  {rep['franka_ros2_set_load']['command']}"]
+    if "motion" in rep:
+        m = rep["motion"]
+        lines.append(f"motion: {m.get('seconds')} s, abandoned at {m.get('abandoned_at_s')} s, max |dq| "
+                     f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
+                     f"closest limit {m.get('min_limit_distance_rad')} rad")
+    return "\n".join(lines)
+
+
+def _emit(rep, args, fit):
+    if args.save:
+        save_tool(args.save, fit.tool, rep["fit"])
+    print(json.dumps(rep, indent=1) if args.json else format_text(rep))
+    return 0 if rep.get("motion", {}).get("abandoned_at_s") is None else 3
+
+
+def franka_identify(args, run_loop, make_backend) -> int:
+    """franka.py --identify: with --sim, a reference motion with the flange empty and then the motion with the tool
+    of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
+    --log FILE with the flange empty) if given. Prints the report (--json), writes --save and --log. run_loop and
+    make_backend: franka's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
+    if args.dry_run or (args.sim_tool is not None and not args.sim):
+        raise ValueError(f"--identify: expected a motion (no --dry-run) and --sim-tool only with --sim, found "
+                         f"--dry-run {args.dry_run}, --sim {args.sim}, --sim-tool {args.sim_tool}")
+    robot = Robot.panda()
+    truth = None if args.sim_tool is None else make_tool(args.sim_tool[0], args.sim_tool[1:4],
+                                                         np.diag(args.sim_tool[4:7]), "--sim-tool")
+    reference = None if args.reference is None else load_log(args.reference)
+    if args.sim:
+        if reference is None:
+            reference = prepared(run_motion(sim_backend(args.seed, None, 0), robot, run_loop)[0])
+        backend = sim_backend(args.seed, truth, 1)
+    else:                                              # the robot's backend, as franka.py builds it
+        try:
+            backend = make_backend(args, np.random.default_rng(args.seed))
+        except RuntimeError as err:
+            print(f"franka.py: not started: {err}", file=sys.stderr)
+            return 2
+    log, summary, _ = run_motion(backend, robot, run_loop)
+    if args.log:
+        np.savez(args.log, **log, tau_ext_sign="paper")
+    fit = fit_logs(robot, prepared(log), reference)
+    return _emit(report(fit, truth, summary), args, fit)
+
+
+def log_main(argv=None, prog: str = "rme.py identify") -> int:
+    """python rme.py identify LOG [--reference REF] [--json] [--save tool.json]."""
+    ap = argparse.ArgumentParser(prog=prog, description="the tool's mass, CoM and inertia from a log of a motion")
+    ap.add_argument("log", help="a franka.py --log .npz or a libfranka CSV of a motion with the tool")
+    ap.add_argument("--reference", help="a log of the same motion with the flange empty (removes the arm's own error)")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--save", metavar="FILE", help="write tool.json")
+    args = ap.parse_args(argv)
+    robot = Robot.panda()
+    try:
+        log = load_log(args.log)
+        reference = None if args.reference is None else load_log(args.reference)
+        fit = fit_logs(robot, log, reference)
+    except ValueError as err:
+        print(f"{prog}: {err}", file=sys.stderr)
+        return 2
+    return _emit(report(fit), args, fit)
