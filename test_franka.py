@@ -378,6 +378,9 @@ def test_rme_with_a_known_tool_estimates_only_the_load_added_to_it():
     assert abs(est.mean[0] - load[0]) < 0.05 and np.abs(est.mean[1:3]).max() < 0.02
     plain = RME(robot).estimate(q, tau)                          # without the tool: the sum
     assert abs(plain.mean[0] - 1.4) < 0.1
+    before = robot.payload_regressor(q).mean(axis=0) @ phi_of_tool(tool)   # the level before the load: the tool's
+    referred = RME(robot, tool=tool).estimate(q, tau, baseline=before)     # it cancels there, not subtracted twice
+    assert abs(referred.mean[0] - load[0]) < 0.05
 
 
 def test_identify_refuses_a_dry_run_and_a_sim_tool_without_the_sim():
