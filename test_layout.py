@@ -11,7 +11,7 @@ PACKAGES = ("diagnosis", "experiments", "motion", "robot")
 
 # Lowest first: a module may import modules of its own layer or below, never above.
 LAYERS = [
-    {"qp", "dynamics"},
+    {"checks", "qp", "dynamics"},
     {"nn_numpy", "vi", "detector", "cpic", "sim", "motion", "rme_settings", "rme_levels",
      "rme_stream"},   # the method, the plant
     {"nn_train", "rme"},                                             # the pipeline and the trainer
