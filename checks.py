@@ -58,10 +58,10 @@ def array(name, value, shape, interval="(-inf, inf)", unit=""):
     """value as a float array of `shape` (None in it: any length >= 1), every entry finite and within the interval
     ("a..b": integers); bool, complex, text and object entries refused."""
     lo, hi, lo_open, hi_open, integer = _interval(interval)
-    a = np.asarray(value) if not isinstance(value, (str, bytes)) else np.asarray(None)
+    a = np.asarray(None) if (r := real_array(value)) is None else r
     want = f"{'integers' if integer else 'numbers'} in {interval}{' ' + unit if unit else ''}, shape {_shape(shape)}"
     if a.dtype.kind not in ("iu" if integer else "iuf"):
-        raise ValueError(f"{name}: expected {want}, found {_found(value, a)}")
+        raise ValueError(f"{name}: expected {want}, found {kind(value)}")
     if a.ndim != len(shape) or any(s is not None and s != k or k == 0 for s, k in zip(shape, a.shape)):
         raise ValueError(f"{name}: expected {want}, found shape {a.shape}")
     bad = ~(np.isfinite(a) & (a > lo if lo_open else a >= lo) & (a < hi if hi_open else a <= hi))
@@ -84,10 +84,25 @@ def _shape(shape):
     return "(" + ", ".join("n" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
 
 
-def _found(value, a):
-    if a.dtype.kind in "bcOUS":
-        kind = {"b": "bool", "c": "complex", "O": "non-numeric", "U": "text", "S": "text"}[a.dtype.kind]
-        return f"{kind} values ({type(value).__name__})" if a.ndim else f"{value!r:.40}"
+def real_array(value):
+    """value as a numpy array of real numbers (ints or floats, not cast), or None: bool, complex, text, objects, ragged
+    nesting (which np.asarray(x, dtype=float) would cast silently, drop the imaginary part of, or fail on)."""
+    try:
+        a = np.asarray(value) if not isinstance(value, (str, bytes)) else None
+    except (TypeError, ValueError):
+        return None
+    return a if a is not None and a.dtype.kind in "iuf" else None
+
+
+def kind(value):
+    """What value is, for an error message: "complex values (list)", "text 'abc'", "NoneType None", "1e+300"."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        return f"ragged nesting ({type(value).__name__})"
+    names = {"b": "bool", "c": "complex", "O": "non-numeric", "U": "text", "S": "text"}
+    if a.dtype.kind in names:
+        return f"{names[a.dtype.kind]} values ({type(value).__name__})" if a.ndim else f"{value!r:.40}"
     return f"{value!r:.40}"
 
 
@@ -111,7 +126,7 @@ def has_methods(name, value, *methods):
 def instance(name, value, cls):
     """value, an instance of cls."""
     if not isinstance(value, cls):
-        raise ValueError(f"{name}: expected a {cls.__name__}, found {type(value).__name__} {value!r:.60}")
+        raise ValueError(f"{name}: expected an instance of {cls.__name__}, found {type(value).__name__} {value!r:.60}")
     return value
 
 

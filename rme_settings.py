@@ -90,7 +90,8 @@ class RMESettings:
         c.number("settings.monitor_far", self.monitor_far, f"({self.monitor_threshold:g}, {self.max_abs_torque:g}]",
                  "Nm (above monitor_threshold)")
         c.number("settings.monitor_speed", self.monitor_speed, "(0, 1]", "rad/s")
-        slow = c.array("settings.monitor_slow", self.monitor_slow, (2,), f"[0, {self.max_abs_torque:g}]")
+        slow = c.array("settings.monitor_slow", self.monitor_slow, (2,), f"[0, {self.max_abs_torque:g}]",
+                       "(speed rad/s, level Nm)")
         if not isinstance(self.monitor_slow, tuple) or not (slow[0] == 0 or self.monitor_speed < slow[0] <= 1) or \
                 slow[1] <= self.monitor_threshold:
             raise ValueError(f"settings.monitor_slow: expected (speed, level): a speed of 0 (off) or above "
