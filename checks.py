@@ -141,6 +141,13 @@ def output_file(name, path):
     return str(path)
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser whose every refusal is one line on stderr (exit status 2): what was wrong, not the usage."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (--help lists the arguments)\n")
+
+
 def argument(interval, unit=""):
     """An argparse type: the text as a number within the interval (see number), else argparse's one-line error."""
     lo, hi, lo_open, hi_open, integer = _interval(interval)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+import checks
 from dynamics import PANDA_XML, Q_READY, Robot, as_states, inertia_matrix
 
 N = 7
@@ -52,18 +53,21 @@ class PlantConfig:
     observer_gain: float = 100.0           # 1/s, momentum observer bandwidth
 
     def __post_init__(self):
-        for name in ("tau_noise", "tau_step", "bias_amp", "torque_offset", "mass_scale", "viscous", "coulomb",
-                     "armature"):
-            v = np.asarray(getattr(self, name), dtype=float)
-            if v.shape != (N,) or not np.all(np.isfinite(v)):
-                raise ValueError(f"config.{name}: expected {N} finite values, found {getattr(self, name)!r}")
-        if np.asarray(self.com_shift, dtype=float).shape != (N, 3):
-            raise ValueError(f"config.com_shift: expected ({N}, 3) values, found {self.com_shift!r}")
-        if self.friction_sigmoid is not None and np.asarray(self.friction_sigmoid, dtype=float).shape != (3, N):
-            raise ValueError(f"config.friction_sigmoid: expected (p1, p2, p3), each {N} values, found "
-                             f"{self.friction_sigmoid!r}")
-        if not 0.0 <= self.stale_prob < 1.0:
-            raise ValueError(f"config.stale_prob: expected a probability in [0, 1), found {self.stale_prob}")
+        """Every field checked (checks.py); the bounds lie far beyond any arm's (torque noise, offsets, friction of
+        tens of Nm; +-50 % link CoM shifts of half a metre); observer_gain below 1/dt = 1000 1/s, where the discrete
+        observer r_k = K (... - dt r_(k-1)) starts to alternate (it diverges beyond 2/dt)."""
+        for name, interval in (("tau_noise", "[0, 10]"), ("tau_step", "[0, 10]"), ("bias_amp", "[0, 10]"),
+                               ("torque_offset", "[-10, 10]"), ("mass_scale", "(0, 10]"), ("viscous", "[0, 100]"),
+                               ("coulomb", "[0, 100]"), ("armature", "[0, 10]")):
+            checks.array(f"config.{name}", getattr(self, name), (N,), interval)
+        checks.array("config.com_shift", self.com_shift, (N, 3), "[-0.5, 0.5]", "m")
+        None if self.friction_sigmoid is None else checks.array("config.friction_sigmoid", self.friction_sigmoid,
+                                                                 (3, N), "[-1e3, 1e3]", "(p1 Nm, p2 s/rad, p3 rad/s)")
+        for name, interval in (("q_noise", "[0, 0.1]"), ("dq_noise", "[0, 1]"), ("stale_prob", "[0, 1)"),
+                               ("coulomb_width", "(0, 10]"), ("observer_gain", "(0, 1000]")):
+            checks.number(f"config.{name}", getattr(self, name), interval)
+        checks.array("config.gravity_tilt", self.gravity_tilt, (2,), "[-1.5708, 1.5708]", "rad")
+        checks.choice("config.observer", self.observer, ("exact", "momentum"))
 
     @staticmethod
     def ideal() -> "PlantConfig":
@@ -127,9 +131,8 @@ class Plant:
 
     def __init__(self, config: PlantConfig | None = None, rng: np.random.Generator | None = None,
                  xml: str = PANDA_XML):
-        self.config = config = PlantConfig.ideal() if config is None else config
-        if config.observer not in ("exact", "momentum"):
-            raise ValueError(f"config.observer: expected 'exact' or 'momentum', found {config.observer!r}")
+        self.config = config = PlantConfig.ideal() if config is None else checks.instance("config", config, PlantConfig)
+        None if rng is None else checks.generator("rng", rng)
         if rng is None and _needs_rng(config):
             raise ValueError("rng: a np.random.Generator is needed for noisy sensors, found None")
         self.rng = rng
