@@ -319,9 +319,10 @@ class JointHold:
 
     def __init__(self, robot: Robot, q0, kp=(600.0,) * 4 + (50.0,) * 3, kd=(40.0,) * 4 + (4.0,) * 3):
         self.robot, self.q0 = robot, as_states("q0", q0, robot.n, allow_window=False)[0][0]
-        self.kp, self.kd = np.asarray(kp, dtype=float), np.asarray(kd, dtype=float)
+        self.kp, self.kd = (checks.array(k, v, (robot.n,), "[0, 1e5]") for k, v in (("kp", kp), ("kd", kd)))
 
     def step(self, q, dq, compensation=None, tau_ext=None):
         """(tau (n,), None): the hold's torque for the state q, dq (n,), plus the compensation if given."""
-        tau = self.robot.gravity(q) + self.kp * (self.q0 - q) - self.kd * dq
-        return (tau if compensation is None else tau + compensation), None
+        n = self.robot.n
+        tau = self.robot.gravity(q) + self.kp * (self.q0 - q) - self.kd * checks.floats("dq", dq, (n,))
+        return (tau if compensation is None else tau + checks.floats("compensation", compensation, (n,))), None

@@ -4,6 +4,7 @@ compares the nominal model with a robot log and finds the missing physical effec
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 
@@ -36,6 +37,8 @@ class RME(Streaming):
         self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
                                                        #   a request; (generator, sample): a detection's steps
         self.rng = np.random.default_rng(0) if rng is None else checks.generator("rng", rng)
+        if not (weights is None or isinstance(weights, (str, os.PathLike))):
+            raise ValueError(f"weights: expected a weights file's path or None, found {weights!r:.60}")
         self.net = MismatchNet.load(weights) if settings.use_network and weights is not None else None  # or ValueError
         self.detector = Detector(settings.detector, n=self.robot.n)
         n, keep = self.robot.n, settings.detector.window
