@@ -34,8 +34,8 @@ def number(name, value, interval="(-inf, inf)", unit="", what=None):
     """value as an int ("a..b") or a float, finite and within the interval; bool, None, text and complex refused."""
     lo, hi, lo_open, hi_open, integer = _interval(interval)
     kinds = numbers.Integral if integer else numbers.Real
-    ok = isinstance(value, kinds) and not isinstance(value, (bool, np.bool_)) and _within(value, lo, hi, lo_open, hi_open)
-    if not ok:
+    if not (isinstance(value, kinds) and not isinstance(value, (bool, np.bool_)) and
+            _within(value, lo, hi, lo_open, hi_open)):
         raise ValueError(f"{name}: expected {_expected(interval, unit, integer, what)}, found {value!r:.40}")
     return int(value) if integer else float(value)
 

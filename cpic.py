@@ -88,8 +88,8 @@ class CPICConfig:
                                       ("q_rest", (None,), "[-100, 100]")):
             None if getattr(self, name) is None else checks.array(name, getattr(self, name), shape, interval)
         for name, interval in (("k1", "(0, 1e4]"), ("k2", "(0, 1e4]"), ("null_weight", "(0, 1e6]"),
-                               ("null_damping", "[0, 1e3]"), ("null_stiffness", "[0, 1e4]"), ("max_iterations", "1..10000"),
-                               ("payload_mass", "[0, 50]"), ("payload_com", "[0, 1]")):
+                               ("null_damping", "[0, 1e3]"), ("null_stiffness", "[0, 1e4]"),
+                               ("max_iterations", "1..10000"), ("payload_mass", "[0, 50]"), ("payload_com", "[0, 1]")):
             checks.number(name, getattr(self, name), interval)
 
 
@@ -141,12 +141,15 @@ class CPIC:
         None if c.q_rest is None else checks.array("config.q_rest", c.q_rest, (n,), unit="(robot.n)")
         self.tau_max = checks.array("config.tau_max", c.tau_max, (n,), unit="(robot.n)")
         if np.any(self.q_min >= self.q_max):
-            raise ValueError(f"config.q_min: expected q_min < q_max, found {self.q_min.tolist()}, {self.q_max.tolist()}")
+            raise ValueError(f"config.q_min: expected q_min < q_max, found {self.q_min.tolist()}, "
+                             f"{self.q_max.tolist()}")
         if np.any(self.tau_max > robot.torque_limits()):     # a setting can only tighten the drives' own limits
             raise ValueError(f"config.tau_max: expected limits within the robot's own, robot.torque_limits() = "
                              f"{robot.torque_limits().tolist()} Nm, found {self.tau_max.tolist()}")
         self._I, self._zeros, self._tau_min, self._X = np.eye(n), np.zeros(n), -self.tau_max, np.zeros((3, n))
-        self._g = float(np.linalg.norm(robot.g))
+        m, r = c.payload_mass, 3 ** 0.5 * c.payload_com     # _payload_like's bound a d_j + b
+        a = m * (float(np.linalg.norm(robot.g)) + 13.0 + 25.0 * r)
+        self._payload_bound = (a, a * r + 25.0 * m * r * r)
         self._A = np.vstack([np.zeros((2 * n, n)), self._I, -self._I])   # constraint rows; the torque rows: fixed
         self.policy = policy                          # checks it and resets
 
@@ -244,17 +247,21 @@ class CPIC:
         return G, dq, comp, f, V, F_c, tau_free, (J, Jp, F_t, null, q, c.k2 * dq, Minv, a0), ""
 
     def _payload_like(self, comp, J):
-        """comp (n,) if a payload of at most payload_mass m with its CoM within c = sqrt(3) payload_com of the ee can need
-        it, else ValueError (not clipped to full torque). Accelerated within Franka's Cartesian limits a = 13 m/s^2,
-        alpha = 25 rad/s^2 (libfranka's specifications), it loads joint j with at most m (|g| + a + alpha c) (d_j + c)
-        + m c^2 alpha, d_j = |J_v[:, j]|: the ee origin's distance from joint j's (hinge) axis."""
-        comp, m, c = checks.floats("compensation", comp, (self.robot.n,)), self.config.payload_mass, 3 ** 0.5 * \
-            self.config.payload_com
-        bound = m * (self._g + 13.0 + 25.0 * c) * (np.sqrt(np.einsum("ij,ij->j", J[:3], J[:3])) + c) + m * c * c * 25.0
+        """comp (n,) if a payload of at most payload_mass m with its CoM within r = sqrt(3) payload_com of the ee can
+        need it, else ValueError (garbage is not clipped to full torque). Accelerated within Franka's Cartesian limits
+        a = 13 m/s^2, alpha = 25 rad/s^2 (libfranka's specifications), it loads joint j with at most
+        m (|g| + a + alpha r) (d_j + r) + m r^2 alpha, d_j = |J_v[:, j]|: the ee origin's distance from joint j's
+        axis."""
+        comp, (a, b) = checks.floats("compensation", comp, (self.robot.n,)), self._payload_bound
+        if comp.max() <= b and -comp.min() <= b:      # within b, the bound at d_j = 0: nothing more to check
+            return comp
+        bound = a * np.sqrt(np.einsum("ij,ij->j", J[:3], J[:3])) + b
         if not np.all(np.abs(comp) <= bound):
-            raise ValueError(f"compensation: expected what a payload up to {m:g} kg, CoM within {c:.2f} m, can need at "
-                             f"this q (CPICConfig.payload_mass, payload_com): |comp| <= {np.round(bound, 2).tolist()} "
-                             f"Nm, found {np.round(comp, 3).tolist()}")
+            c = self.config
+            raise ValueError(f"compensation: expected what a payload up to {c.payload_mass:g} kg, CoM within "
+                             f"{c.payload_com:g} m of the ee per axis, can need at this q (CPICConfig.payload_mass, "
+                             f"payload_com): |comp| <= {np.round(bound, 2).tolist()} Nm, found "
+                             f"{np.round(comp, 3).tolist()}")
         return comp
 
     def _objective(self, J, Jp, F_t, null):
@@ -294,8 +301,12 @@ class CPIC:
 def _policy_output(out):
     """(f (6,), (V_pos, V_rot)) of a policy's output; a wrong type or shape is a ValueError (NaN, inf are not: step
     falls back to the safe torque and says why)."""
-    f, V = (np.asarray(out[0]), np.asarray(out[1])) if isinstance(out, tuple) and len(out) == 2 else (None, None)
-    if f is None or f.shape != (6,) or V.shape != (2,) or f.dtype.kind not in "iuf" or V.dtype.kind not in "iuf":
+    f, V = out if type(out) is tuple and len(out) == 2 else (None, None)
+    if type(f) is np.ndarray and f.dtype == np.float64 and f.shape == (6,) and type(V) is tuple and len(V) == 2 and \
+            type(V[0]) in (float, np.float64) and type(V[1]) in (float, np.float64):
+        return f, V                                   # what Attractor and LimitCycle return: the 1 kHz loop's case
+    f, V = checks.real_array(f), checks.real_array(V)
+    if f is None or V is None or f.shape != (6,) or V.shape != (2,):
         raise ValueError(f"policy: expected (f, (V_pos, V_rot)) with f of 6 real numbers, found {out!r:.80}")
     return f.astype(float), (float(V[0]), float(V[1]))
 

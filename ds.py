@@ -1,5 +1,5 @@
-"""Motion policies f(x) with their Lyapunov functions V(x) (Sec. 3, Eq. 6), as CPIC (cpic.py) follows them: a linear
-attractor to a pose and a limit cycle in the y-z plane, each returning the task velocity f (6,) and V = (V_pos, V_rot)."""
+"""Motion policies f(x) with their Lyapunov functions V(x) (Sec. 3, Eq. 6), as CPIC (cpic.py) follows them: a
+linear attractor to a pose and a limit cycle in the y-z plane, each returning f (6,) and V = (V_pos, V_rot)."""
 from __future__ import annotations
 
 import math

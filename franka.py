@@ -318,7 +318,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
     ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
-    ap.add_argument("--sim-payload", type=checks.argument("[0, 3]", "kg"), default=0.0, help="kg added at half time with --sim (CoM: SIM_COM)")
+    ap.add_argument("--sim-payload", type=checks.argument("[0, 3]", "kg"), default=0.0,
+                    help="kg added at half time with --sim (CoM: SIM_COM)")
     ap.add_argument("--stiffness-scale", type=checks.argument("(0, 1]"), default=1.0,
                     help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")

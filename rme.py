@@ -32,7 +32,7 @@ class RME(Streaming):
                  rng: np.random.Generator | None = None, correction=None, executor=None):
         self.robot = Robot.panda() if robot is None else checks.instance("robot", robot, Robot)
         self.settings = checks.instance("settings", settings, RMESettings)
-        self.correction = correction if correction is None else checks.has_methods("correction", correction, "correction")
+        self.correction = None if correction is None else checks.has_methods("correction", correction, "correction")
         self.executor = executor if executor is None else checks.has_methods("executor", executor, "submit")
         self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
                                                        #   a request; (generator, sample): a detection's steps
@@ -122,8 +122,8 @@ class RME(Streaming):
         tau, batched = as_states(name, x, self.robot.n, allow_window)
         if (big := np.argwhere(np.abs(tau) > self.settings.max_abs_torque)).size:
             i = tuple(int(k) for k in big[0])
-            raise ValueError(f"{name}: expected torques within settings.max_abs_torque = {self.settings.max_abs_torque:g}"
-                             f" Nm, found {tau[i]:g} at index {i if batched else i[1]}")
+            raise ValueError(f"{name}: expected torques within settings.max_abs_torque = "
+                             f"{self.settings.max_abs_torque:g} Nm, found {tau[i]:g} at index {i if batched else i[1]}")
         return tau, batched
 
     def _estimate(self, q, tau):

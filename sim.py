@@ -54,8 +54,8 @@ class PlantConfig:
 
     def __post_init__(self):
         """Every field checked (checks.py); the bounds lie far beyond any arm's (torque noise, offsets, friction of
-        tens of Nm, CoM shifts of half a metre; viscous from -0.1: Gaz et al. identify -0.0132 on joint 6); observer_gain
-        up to 1/dt = 1000 1/s, where the discrete observer r_k = K (... - dt r_(k-1)) starts to alternate."""
+        tens of Nm, CoM shifts of half a metre; viscous from -0.1: Gaz et al. identify -0.0132 on joint 6);
+        observer_gain up to 1/dt = 1000 1/s, where the discrete observer r_k = K (... - dt r_(k-1)) alternates."""
         for name, interval in (("tau_noise", "[0, 10]"), ("tau_step", "[0, 10]"), ("bias_amp", "[0, 10]"),
                                ("torque_offset", "[-10, 10]"), ("mass_scale", "(0, 10]"), ("viscous", "[-0.1, 100]"),
                                ("coulomb", "[0, 100]"), ("armature", "[0, 10]")):
@@ -227,7 +227,8 @@ class Plant:
     def step(self, tau) -> Sample:
         """Apply joint torque tau (7,) [Nm] (clipped to 87/12 Nm) for one time step; the Sample at the new time."""
         if (a := checks.real_array(tau)) is None or a.shape != (N,):      # bool, complex: refused, never cast
-            raise ValueError(f"tau: expected shape ({N},) of real values, found {checks.kind(tau) if a is None else a.shape}")
+            raise ValueError(f"tau: expected shape ({N},) of real values, found "
+                             f"{checks.kind(tau) if a is None else a.shape}")
         tau = a.astype(float)
         if not np.all(np.isfinite(tau)):
             raise ValueError(f"tau: expected finite torques, found {tau.tolist()} (a real drive would fault)")
@@ -336,7 +337,8 @@ def _check_payload(m, r, inertia):
     """(m, r (3,), I (3, 3) about the CoM in the ee frame) checked; inertia None = point mass, (6,) = pinocchio order."""
     m = checks.number("m", m, "[0, 100]", "kg", what="a mass")        # (beyond any arm's payload)
     r = checks.array("r", r, (3,), "[-2, 2]", "m (the CoM in the ee frame)")
-    I = np.zeros((3, 3)) if inertia is None else checks.array("inertia", inertia, (None,) * np.ndim(inertia), "[-1e3, 1e3]")
+    I = np.zeros((3, 3)) if inertia is None else checks.array("inertia", inertia, (None,) * np.ndim(inertia),
+                                                              "[-1e3, 1e3]", "kg m^2")
     if I.shape == (6,):
         I = inertia_matrix(I)
     if I.shape != (3, 3) or not np.all(np.isfinite(I)) or not np.allclose(I, I.T) or np.linalg.eigvalsh(I).min() < -1e-12:

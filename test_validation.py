@@ -31,29 +31,38 @@ def ctrl(config=None, policy=None):
 
 
 # --- settings and constructors: nothing accepted that fails later -------------------------------------------------
-@pytest.mark.parametrize("make, name", [
-    (lambda: RMESettings(window=200.5), "settings.window"), (lambda: RMESettings(monitor_window=300.5), "settings.monitor_window"),
-    (lambda: RMESettings(refine_within=math.inf), "settings.refine_within"),
-    (lambda: RMESettings(reference=1.5), "settings.reference"), (lambda: RMESettings(rate=math.inf), "settings.rate"),
-    (lambda: RMESettings(max_mass=math.inf), "settings.max_mass"), (lambda: RMESettings(max_com=math.inf), "settings.max_com"),
-    (lambda: RMESettings(min_explained=-5), "settings.min_explained"),
-    (lambda: RMESettings(pose_tolerance=math.nan), "settings.pose_tolerance"),
-    (lambda: RMESettings(first_explained=5), "settings.first_explained"),
-    (lambda: RMESettings(monitor_speed=-1), "settings.monitor_speed"), (lambda: RMESettings(window=None), "settings.window"),
-    (lambda: RMESettings(rate="1000"), "settings.rate"),
-    (lambda: vi.VISettings(clip_norm=1e300), "clip_norm"), (lambda: vi.VISettings(sigma_prior=(1e300,) * 4), "sigma_prior"),
-    (lambda: vi.VISettings(lr=1e300), "lr"), (lambda: vi.VISettings(noise_floor=1e300), "noise_floor"),
-    (lambda: vi.VISettings(lr="0.1"), "lr"),
-    (lambda: PlantConfig(observer="momentum", observer_gain=math.nan), "config.observer_gain"),
-    (lambda: RME(ROBOT, weights=None, correction="friction"), "correction"),
-    (lambda: RME(ROBOT, weights=None, rng=42), "rng"), (lambda: RME(ROBOT, weights=None, executor="thread"), "executor"),
-    (lambda: Attractor(np.zeros(3), gain_rot="8"), "gain_rot"),
-    (lambda: ctrl(CPICConfig(tau_max=(1e300,) * 7)), "tau_max"),
-    (lambda: ctrl(CPICConfig(tau_max=(87.0,) * 7)), "config.tau_max"),     # joints 5-7: 12 Nm drives
+def rme(**kwargs):
+    return RME(ROBOT, weights=None, **kwargs)
+
+
+def cpic_with(**kwargs):
+    return ctrl(CPICConfig(**kwargs))
+
+
+@pytest.mark.parametrize("make, kwargs, name", [
+    (RMESettings, dict(window=200.5), "settings.window"), (RMESettings, dict(window=None), "settings.window"),
+    (RMESettings, dict(monitor_window=300.5), "settings.monitor_window"),
+    (RMESettings, dict(refine_within=math.inf), "settings.refine_within"),
+    (RMESettings, dict(reference=1.5), "settings.reference"), (RMESettings, dict(rate=math.inf), "settings.rate"),
+    (RMESettings, dict(rate="1000"), "settings.rate"), (RMESettings, dict(max_mass=math.inf), "settings.max_mass"),
+    (RMESettings, dict(max_com=math.inf), "settings.max_com"),
+    (RMESettings, dict(min_explained=-5), "settings.min_explained"),
+    (RMESettings, dict(pose_tolerance=math.nan), "settings.pose_tolerance"),
+    (RMESettings, dict(first_explained=5), "settings.first_explained"),
+    (RMESettings, dict(monitor_speed=-1), "settings.monitor_speed"),
+    (vi.VISettings, dict(clip_norm=1e300), "clip_norm"), (vi.VISettings, dict(sigma_prior=(1e300,) * 4), "sigma_prior"),
+    (vi.VISettings, dict(lr=1e300), "lr"), (vi.VISettings, dict(lr="0.1"), "lr"),
+    (vi.VISettings, dict(noise_floor=1e300), "noise_floor"),
+    (PlantConfig, dict(observer="momentum", observer_gain=math.nan), "config.observer_gain"),
+    (rme, dict(correction="friction"), "correction"), (rme, dict(rng=42), "rng"),
+    (rme, dict(executor="thread"), "executor"),
+    (lambda **k: Attractor(np.zeros(3), **k), dict(gain_rot="8"), "gain_rot"),
+    (cpic_with, dict(tau_max=(1e300,) * 7), "tau_max"),
+    (cpic_with, dict(tau_max=(87.0,) * 7), "config.tau_max"),                  # joints 5-7 have 12 Nm drives
 ])
-def test_settings_that_would_fail_later_are_refused_where_given(make, name):
+def test_settings_that_would_fail_later_are_refused_where_given(make, kwargs, name):
     with pytest.raises(ValueError, match="^" + name.replace(".", r"\.") + ": expected"):
-        make()
+        make(**kwargs)
 
 
 def test_an_ee_that_is_no_name_is_refused_not_a_crash():
@@ -171,7 +180,8 @@ def test_estimate_refuses_torques_beyond_max_abs_torque_and_complex_or_bool_wind
     q, tau = np.tile(Q_READY, (200, 1)), np.zeros((200, 7))
     for kwargs, name in [(dict(tau_ext=tau, baseline=np.full(7, 1e300)), "baseline"),
                          (dict(tau_ext=np.full((200, 7), 1e200)), "tau_ext"), (dict(tau_ext=tau + 0j), "tau_ext"),
-                         (dict(tau_ext=tau.astype(bool)), "tau_ext"), (dict(tau_ext=tau, baseline=np.ones(7) + 1j), "baseline")]:
+                         (dict(tau_ext=tau.astype(bool)), "tau_ext"),
+                         (dict(tau_ext=tau, baseline=np.ones(7) + 1j), "baseline")]:
         with pytest.raises(ValueError, match=f"^{name}: expected"):
             est.estimate(q, **kwargs)
     rng = np.random.default_rng(3)
