@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_coeffs
 
+import checks
+
 _I_INDEX = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])     # pi index of I[i, j]; pi = (m, h, Ixx, Ixy, Iyy, Ixz, Iyz, Izz)
 
 
@@ -68,6 +70,12 @@ class FitSettings:
     gap: float = 1e-6                                # the projection stops within this share of its cost (at
                                                      #   least 1) of the optimum, whitened (chi-square units)
     max_steps: int = 100                             # Newton steps of the projection at most (it takes 20-40)
+
+    def __post_init__(self):                         # finite bounds far beyond use (checks.py)
+        checks.array("prior_std", self.prior_std, (4,), "(0, 1e3]", "kg, kg m")
+        for name, interval in (("inertia_std", "(0, 1e3]"), ("min_noise", "(0, 1e3]"), ("tolerance", "[0, 1]"),
+                               ("gap", "(0, 1]"), ("max_steps", "1..10000")):
+            checks.number(name, getattr(self, name), interval)
 
 
 @dataclass
