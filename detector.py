@@ -151,21 +151,14 @@ class Detector:
     def update(self, tau_ext, force=None, J=None) -> bool:
         """Add one sample: tau_ext (n,) [Nm, paper sign] and either the world-frame pseudo-force (3,) [N] or the
         Jacobian J (6, n) to compute it from. Returns True when a load change is detected at this sample."""
-        tau = np.asarray(tau_ext, dtype=float)
-        if tau.shape != (self.n,) or not np.all(np.isfinite(tau)) or np.abs(tau).max() > MAX_TORQUE:
-            raise ValueError(f"tau_ext: expected finite values within +-{MAX_TORQUE:g} Nm of shape ({self.n},), found "
-                             f"{tau.shape} {tau}")
+        tau = checks.array("tau_ext", tau_ext, (self.n,), f"[-{MAX_TORQUE:g}, {MAX_TORQUE:g}]", "Nm")
         if (force is None) == (J is None):
             raise ValueError("force, J: expected exactly one of them, found "
                              f"{'both' if force is not None else 'neither'}")
         if force is None:
-            J = np.asarray(J, dtype=float)
-            if J.shape != (6, self.n) or not np.all(np.isfinite(J)):
-                raise ValueError(f"J: expected finite values of shape (6, {self.n}), found {J.shape}")
+            J = checks.array("J", J, (6, self.n))
             force = pseudo_force(J, tau, self.settings.lam)
-        force = np.asarray(force, dtype=float)
-        if force.shape != (3,) or not np.all(np.isfinite(force)) or np.abs(force).max() > 1e3 * MAX_TORQUE:
-            raise ValueError(f"force: expected finite values of shape (3,), found {force.shape} {force}")
+        force = checks.array("force", force, (3,), f"[-{1e3 * MAX_TORQUE:g}, {1e3 * MAX_TORQUE:g}]", "N")
         return self.push(tau, force)
 
     def push(self, tau, force):

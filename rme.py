@@ -77,9 +77,7 @@ class RME(Streaming):
         then estimated at its detection (or by the monitor's check of a slow arm), not held as a possible press
         (RMESettings.hold_axial). A person pressing on the hand meanwhile is taken for the load it looks like, as
         with hold_axial = 0."""
-        if isinstance(seconds, bool) or not (isinstance(seconds, (int, float, np.integer, np.floating))
-                                             and 0 <= seconds < math.inf):
-            raise ValueError(f"seconds: expected a finite time >= 0 s, found {seconds!r}")
+        checks.number("seconds", seconds, "[0, 3600]", "s")
         self._expected = max(self._expected, self._k + 1 + int(round(seconds * self.settings.rate)))   # (a shorter
                                                                                         #   call keeps a longer one)
 
