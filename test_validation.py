@@ -250,7 +250,8 @@ def test_detector_update_and_joint_hold_refuse_complex_and_bool():
     from cpic import JointHold
     from detector import Detector
     J = ROBOT.jacobian(Q_READY)
-    for kwargs, name in [(dict(tau_ext=np.zeros(7) + 0j, J=J), "tau_ext"), (dict(tau_ext=np.zeros(7) > 0, J=J), "tau_ext"),
+    z = np.zeros(7)
+    for kwargs, name in [(dict(tau_ext=z + 0j, J=J), "tau_ext"), (dict(tau_ext=z > 0, J=J), "tau_ext"),
                          (dict(tau_ext=np.zeros(7), J=J + 0j), "J"),
                          (dict(tau_ext=np.zeros(7), force=[True] * 3), "force")]:
         with pytest.raises(ValueError, match=f"^{name}: expected"):
