@@ -43,14 +43,14 @@ def number(name, value, interval="(-inf, inf)", unit="", what=None):
 def flag(name, value):
     """value as a bool: True or False (numbers and text refused)."""
     if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name}: expected True or False, found {value!r}")
+        raise ValueError(f"{name}: expected True or False, found {value!r:.40}")
     return bool(value)
 
 
 def choice(name, value, options):
     """value, one of options."""
     if not isinstance(value, str) or value not in options:
-        raise ValueError(f"{name}: expected one of {', '.join(map(repr, options))}, found {value!r}")
+        raise ValueError(f"{name}: expected one of {', '.join(map(repr, options))}, found {value!r:.40}")
     return value
 
 
@@ -95,7 +95,7 @@ def real_array(value):
 
 
 def kind(value):
-    """What value is, for an error message: "complex values (list)", "text 'abc'", "NoneType None", "1e+300"."""
+    """What value is, for an error message: "complex values (list)", "ragged nesting (list)", "'abc'", "None"."""
     try:
         a = np.asarray(value)
     except (TypeError, ValueError):
@@ -110,7 +110,7 @@ def generator(name, value):
     """value, a np.random.Generator (the only source of randomness)."""
     if not isinstance(value, np.random.Generator):
         raise ValueError(f"{name}: expected a np.random.Generator (np.random.default_rng(seed)), found "
-                         f"{type(value).__name__} {value!r}")
+                         f"{type(value).__name__} {value!r:.40}")
     return value
 
 
@@ -150,7 +150,7 @@ class Parser(argparse.ArgumentParser):
 
 def argument(interval, unit=""):
     """An argparse type: the text as a number within the interval (see number), else argparse's one-line error."""
-    lo, hi, lo_open, hi_open, integer = _interval(interval)
+    integer = _interval(interval)[4]
 
     def parse(text):
         try:
