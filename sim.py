@@ -198,26 +198,18 @@ class Plant:
 
     def schedule_payload(self, t, m, r=(0.0, 0.0, 0.0), inertia=None):
         """Change the payload at simulation time t [s] (m = 0 removes it); checked now, applied then."""
-        if not np.isfinite(t):
-            raise ValueError(f"t: expected a finite time in s, found {t}")
-        m, r, inertia = _check_payload(m, r, inertia)
+        t, (m, r, inertia) = checks.number("t", t, "[0, 1e6]", "s"), _check_payload(m, r, inertia)
         self._events.append((float(t), (m, r, inertia)))
         self._events.sort(key=lambda e: e[0])
 
     def push(self, force, body="link7", offset=(0.0, 0.0, 0.0), start=0.0, duration=0.5):
         """A human push: world force (3,) [N] at a point `offset` (body frame) of `body`, from start for duration [s]."""
-        f = np.asarray(force, dtype=float)
-        if f.shape != (3,) or not np.all(np.isfinite(f)):
-            raise ValueError(f"force: expected a finite (3,) force in N, found {force}")
-        bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, body)
-        if bid < 0:
-            raise ValueError(f"body: no body named {body!r} in the plant")
-        o = np.asarray(offset, dtype=float)
-        if o.shape != (3,) or not np.all(np.isfinite(o)):
-            raise ValueError(f"offset: expected a finite point (3,) in the body frame, found {offset}")
-        if not (np.isfinite(start) and np.isfinite(duration) and duration >= 0):
-            raise ValueError(f"start, duration: expected finite times, duration >= 0, found {start}, {duration}")
-        self._pushes.append(_Push(f, bid, np.asarray(offset, float), float(start), float(start + duration)))
+        f = checks.array("force", force, (3,), "[-1e4, 1e4]", "N")
+        if not isinstance(body, str) or (bid := mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, body)) < 0:
+            raise ValueError(f"body: expected the name of a body of the plant, found {body!r}")   # (None crashes)
+        o = checks.array("offset", offset, (3,), "[-2, 2]", "m")
+        start, duration = (checks.number(k, v, "[0, 1e6]", "s") for k, v in (("start", start), ("duration", duration)))
+        self._pushes.append(_Push(f, bid, o, start, start + duration))
 
     # --- stepping ------------------------------------------------------------------------------
     @property
