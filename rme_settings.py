@@ -69,7 +69,8 @@ class RMESettings:
         """Every field checked where it is given (checks.py); the upper bounds keep every product with a rate or a
         torque finite and are far beyond any arm: 10 kHz loops, 50 kg payloads (UR30: 30 kg), 1 m CoMs (the Panda
         reaches 0.855 m), a minute of waiting, torques up to max_abs_torque (<= the detector's MAX_TORQUE)."""
-        d, c = self.detector, checks
+        d, c, top = self.detector, checks, repr(float(checks.number("settings.max_abs_torque", self.max_abs_torque,
+                                                                      f"(0, {MAX_TORQUE:g}]", "Nm")))
         keep, settled = checks.instance("settings.detector", d, DetectorSettings).window, d.settled_window[1]
         checks.instance("settings.vi", self.vi, vi.VISettings)
         for name in ("use_network", "asynchronous", "refine", "monitor", "accumulate"):
@@ -84,13 +85,12 @@ class RMESettings:
         c.number("settings.first_explained", self.first_explained, "[0, 1]", "(a share)")
         c.number("settings.rest_speed", self.rest_speed, "(0, 1]", "rad/s")
         c.number("settings.refine_within", self.refine_within, "(0, 60]", "s")
-        c.number("settings.max_abs_torque", self.max_abs_torque, f"(0, {MAX_TORQUE:g}]", "Nm")
-        c.number("settings.monitor_threshold", self.monitor_threshold, f"(0, {self.max_abs_torque:g})", "Nm")
+        c.number("settings.monitor_threshold", self.monitor_threshold, f"(0, {top})", "Nm")
         c.number("settings.monitor_window", self.monitor_window, f"{self.window}..{keep}", "samples")
-        c.number("settings.monitor_far", self.monitor_far, f"({self.monitor_threshold:g}, {self.max_abs_torque:g}]",
+        c.number("settings.monitor_far", self.monitor_far, f"({float(self.monitor_threshold)!r}, {top}]",
                  "Nm (above monitor_threshold)")
         c.number("settings.monitor_speed", self.monitor_speed, "(0, 1]", "rad/s")
-        slow = c.array("settings.monitor_slow", self.monitor_slow, (2,), f"[0, {self.max_abs_torque:g}]",
+        slow = c.array("settings.monitor_slow", self.monitor_slow, (2,), f"[0, {top}]",
                        "(speed rad/s, level Nm)")
         if not isinstance(self.monitor_slow, tuple) or not (slow[0] == 0 or self.monitor_speed < slow[0] <= 1) or \
                 slow[1] <= self.monitor_threshold:
