@@ -51,15 +51,13 @@ def pseudo_wrench(J, tau_ext, lam, check=True):
     loop, whose inputs are checked once upstream)."""
     if not check:
         return np.linalg.solve(J @ np.swapaxes(J, -1, -2) + lam * np.eye(6), (J @ tau_ext[..., None]))[..., 0]
-    J, tau_ext = np.asarray(J, dtype=float), np.asarray(tau_ext, dtype=float)
+    J = checks.array("J", J, (None,) * np.ndim(J))                 # real, finite (bool, complex refused)
+    tau_ext = checks.array("tau_ext", tau_ext, (None,) * np.ndim(tau_ext))
     if J.ndim not in (2, 3) or J.shape[-2] != 6:
         raise ValueError(f"J: expected shape (6, n) or (T, 6, n), found {J.shape}")
     if tau_ext.shape != J.shape[:-2] + J.shape[-1:]:
         raise ValueError(f"tau_ext: expected shape {J.shape[:-2] + J.shape[-1:]}, found {tau_ext.shape}")
-    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(tau_ext))):
-        raise ValueError("J, tau_ext: expected finite values, found NaN or inf")
-    if not (np.isfinite(lam) and lam >= 0):
-        raise ValueError(f"lam: expected a finite damping >= 0, found {lam}")
+    lam = checks.number("lam", lam, "[0, 1e3]", "(damping)")
     A = J @ np.swapaxes(J, -1, -2) + lam * np.eye(6)                      # (..., 6, 6)
     return np.linalg.solve(A, (J @ tau_ext[..., None]))[..., 0]
 
