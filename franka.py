@@ -312,18 +312,19 @@ def main(argv=None) -> int:
     ap.add_argument("--robot-ip", help="the robot's FCI address (not needed with --sim)")
     ap.add_argument("--lib", choices=LIBS, default="pylibfranka")
     ap.add_argument("--task", choices=TASKS, default="hold")
-    ap.add_argument("--seconds", type=checks.argument("(0, 600]", "s"), default=10.0, help="run time (the log keeps "
-                    "every cycle: 10 min is about 250 MB)")
+    ap.add_argument("--seconds", type=checks.argument("(0, 600]", "s"), default=10.0,
+                    help="run time in (0, 600] s (the log keeps every cycle: 10 min is about 250 MB)")
     ap.add_argument("--log", type=checks.writable, help="write the run to this .npz (diagnosis.logs.load_log reads it)")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
     ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
     ap.add_argument("--sim-payload", type=checks.argument("[0, 3]", "kg"), default=0.0,
-                    help="kg added at half time with --sim (CoM: SIM_COM)")
+                    help="kg in [0, 3] added at half time with --sim (CoM: SIM_COM)")
     ap.add_argument("--stiffness-scale", type=checks.argument("(0, 1]"), default=1.0,
                     help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
-    ap.add_argument("--seed", type=checks.argument("0..4294967294"), default=0, help="the --sim plant's noise")
+    ap.add_argument("--seed", type=checks.argument("0..4294967294"), default=0,
+                    help="the --sim plant's noise, 0..4294967294")
     ap.add_argument("--paced", action="store_true", help="with --sim: one state per ms of wall time, as a robot")
     ap.add_argument("--worker", choices=WORKERS, default="process", help="where RME's estimates run beside the loop")
     ap.add_argument("--sync-estimate", action="store_true", help="RME's estimates within the callback, no worker")

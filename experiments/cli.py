@@ -51,13 +51,16 @@ DEMOS = {
 
 FLAGS = {
     "preset": (("--preset",), dict(default="realistic", choices=("ideal", "realistic"), help="plant and sensors")),
-    "seed": (("--seed",), dict(type=checks.argument(SEEDS), default=0, help="seed of the np.random.Generator")),
+    "seed": (("--seed",), dict(type=checks.argument(SEEDS), default=0,
+                               help=f"seed of the np.random.Generator, {SEEDS}")),
     "plot": (("--plot",), dict(metavar="FILE", type=checks.writable, default=None,
                                help="save a figure (needs matplotlib; its folder must exist)")),
     "view": (("--view",), dict(action="store_true", help="open MuJoCo's viewer when a display exists")),
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
-    "episodes": (("--episodes",), dict(type=checks.argument("1..100000"), default=100, help="episodes of each kind")),
-    "windows": (("--windows",), dict(type=checks.argument("1..1000000"), default=200, help="simulated windows")),
+    "episodes": (("--episodes",), dict(type=checks.argument("1..100000"), default=100,
+                                       help="episodes of each kind, 1..100000")),
+    "windows": (("--windows",), dict(type=checks.argument("1..1000000"), default=200,
+                                     help="simulated windows, 1..1000000")),
 }
 
 

@@ -123,9 +123,9 @@ def main(argv=None):
     ap = checks.Parser(prog="nn_numpy.py", description=__doc__)
     ap.add_argument("command", choices=["train", "bench"])
     ap.add_argument("--episodes", type=checks.argument("1..100000"), default=TrainConfig.episodes,
-                    help="train: simulated episodes")
-    ap.add_argument("--seed", type=checks.argument("0..4294967295"), default=0, help="train: the data's and the "
-                    "training's np.random.Generator")
+                    help="train: simulated episodes, 1..100000")
+    ap.add_argument("--seed", type=checks.argument("0..4294967295"), default=0, help="train: the seed of the data's "
+                    "and the training's np.random.Generator, 0..4294967295")
     ap.add_argument("--out", default=WEIGHTS, help="train: the weights file to write (its folder must exist); "
                     "bench: the weights file to time")
     a = ap.parse_args(argv)

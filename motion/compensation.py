@@ -54,7 +54,8 @@ class InertiaSettings:
                                ("window", f"20..{self.max_rows}"), ("reference_rows", "1..1000000"),
                                ("min_reference", f"0..{self.reference_rows}"), ("max_distance", "(0, 1e3]"),
                                ("unloaded_mass", "[0, 50]"), ("max_torque", "(0, 1e3]"),
-                               ("max_relative_std", "(0, 10]"), ("max_acceleration", "(0, 1e3]"), ("jolt", "(0, 1e3]"), ("settle", "[0, 60]")):
+                               ("max_relative_std", "(0, 10]"), ("max_acceleration", "(0, 1e3]"), ("jolt", "(0, 1e3]"),
+                               ("settle", "[0, 60]")):
             number(f"settings.{name}", getattr(self, name), interval)
         checks.array("settings.scale", self.scale, (3,), "(0, 1e3]", "(Nm per rad, rad/s, rad/s^2)")
         None if self.observer_gain is None else number("settings.observer_gain", self.observer_gain, "(0, 1e4]", "1/s")
