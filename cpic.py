@@ -133,6 +133,7 @@ class CPIC:
     """
 
     def __init__(self, robot, policy, config: CPICConfig | None = None):
+        checks.has_methods("robot", robot, "control_terms", "torque_limits", "jacobian")   # what step calls
         self.robot, self.config = robot, CPICConfig() if config is None else config
         c, n, lim = checks.instance("config", self.config, CPICConfig), robot.n, robot.model.jnt_range
         self.q_min = checks.array("config.q_min", lim[:, 0] if c.q_min is None else c.q_min, (n,), unit="(robot.n)")

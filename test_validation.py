@@ -63,6 +63,9 @@ def cpic_with(**kwargs):
     (lambda **k: Attractor(np.zeros(3), **k), dict(gain_rot="8"), "gain_rot"),
     (cpic_with, dict(tau_max=(1e300,) * 7), "tau_max"),
     (cpic_with, dict(tau_max=(87.0,) * 7), "config.tau_max"),                  # joints 5-7 have 12 Nm drives
+    (lambda **k: CPIC(**k, policy=Attractor(np.zeros(3))), dict(robot="panda"), "robot"),
+    (Plant, dict(rng=3), "rng"), (Plant, dict(config="ideal"), "config"),
+    (lambda **k: Robot.from_xml(PANDA_XML, **k), dict(ee=7), "ee"), (Robot.from_xml, dict(path=None), "path"),
 ])
 def test_settings_that_would_fail_later_are_refused_where_given(make, kwargs, name):
     with pytest.raises(ValueError, match="^" + name.replace(".", r"\.") + ": expected"):
