@@ -94,6 +94,13 @@ def real_array(value):
     return a if a is not None and a.dtype.kind in "iuf" else None
 
 
+def real(name, value):
+    """value as a float array of any shape (checked no further) of real numbers; bool, complex, text refused."""
+    if (a := real_array(value)) is None:
+        raise ValueError(f"{name}: expected real numbers, found {kind(value)}")
+    return a.astype(float)
+
+
 def kind(value):
     """What value is, for an error message: "complex values (list)", "ragged nesting (list)", "'abc'", "None"."""
     try:

@@ -267,6 +267,16 @@ def test_detector_update_and_joint_hold_refuse_complex_and_bool():
         JointHold(ROBOT, Q_READY, kp="600")
 
 
+def test_network_refuses_complex_and_bool_input(est):
+    import nn_numpy
+    q, tau = np.tile(Q_READY, (200, 1)), np.zeros((200, 7))
+    for call, name in [(lambda: nn_numpy.features(ROBOT, q, tau + 0j), "tau_ext"),
+                       (lambda: nn_numpy.features(ROBOT, q > 0, tau), "q"),
+                       (lambda: est.net.predict(np.zeros((20, 6)) + 1j), "x")]:
+        with pytest.raises(ValueError, match=f"^{name}: expected real numbers, found"):
+            call()
+
+
 def test_solve_qp_refuses_complex_and_bool_arrays():
     H, g, A, b = np.eye(3), np.ones(3), np.eye(3), -np.ones(3)
     for i, name in enumerate("HgAb"):
