@@ -1,116 +1,21 @@
-"""Constrained passive interaction control (CPIC, Sec. 3, Eqs. 6-8; Appendix B, D): DS motion policies, the passive
-impedance law F_c = G_x - D(x)(xdot - f(x)), the exponential-CBF torque QP (solved by qp.py's dual active-set KKT
-solver) and the RME compensation hook; and JointHold, a plain joint PD hold for recording data."""
+"""Constrained passive interaction control (CPIC, Sec. 3, Eqs. 7-8; Appendix B, D) of the DS policies of ds.py: the
+passive impedance law F_c = G_x - D(x)(xdot - f(x)), the exponential-CBF torque QP (solved by qp.py's dual active-set
+KKT solver) and the RME compensation hook; and JointHold, a plain joint PD hold for recording data."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import lapack
 
+import checks
 from dynamics import Robot, as_states
+from ds import Attractor, LimitCycle, rotation_log   # noqa: F401  (re-exported: the policies CPIC follows)
 from qp import QPInfo, dual_active_set_from_inverse, solve_qp
 
 __all__ = ["Attractor", "LimitCycle", "CPIC", "CPICConfig", "StepInfo", "JointHold", "damping_matrix",
            "impedance_wrench", "rotation_log", "storage", "solve_qp", "QPInfo"]   # solve_qp, QPInfo: from qp.py
-
-
-def _checked(name, v, shape=None, low=None, strict=True):
-    """v as a float (shape None) or a float array of that shape, finite and > low (>= low if not strict); else
-    ValueError naming it, with what was found and what was expected."""
-    if low is None and type(v) is np.ndarray and v.shape == shape and v.dtype == float and math.isfinite(v.sum()):
-        return v                                      # fast path for the 1 kHz loop (inf - inf sums to NaN)
-    what = "a finite number" if shape is None else f"finite values of shape {shape}"
-    what += "" if low is None else f" {'>' if strict else '>='} {low:g}"
-    try:
-        a = np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected {what}, found {v!r}") from None
-    if a.shape != (() if shape is None else shape):
-        raise ValueError(f"{name}: expected {what}, found shape {a.shape}")
-    if not np.all(np.isfinite(a)) or low is not None and not np.all(a > low if strict else a >= low):
-        raise ValueError(f"{name}: expected {what}, found {a.tolist()}")
-    return a if shape is not None else float(a)
-
-
-def _checked_rotation(name, R):
-    """R (3, 3) with R^T R = I and det R = +1 (to 1e-6); else ValueError."""
-    R = _checked(name, R, (3, 3))
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0.0:
-        raise ValueError(f"{name}: expected a rotation matrix (R^T R = I, det R = 1), found {R.tolist()}")
-    return R
-
-
-# --- motion policies f(x) with their Lyapunov functions V(x) (Sec. 3, Eq. 6) ---------------------------------
-def rotation_log(R):
-    """log map of R (3, 3) -> rotation vector (3,) = angle * axis, angle in [0, pi]."""
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])      # 2 sin(angle) axis
-    angle = math.acos(min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))))
-    if angle < 1e-6:
-        return 0.5 * w                                # first order: log R = vee(R - R^T) / 2
-    if angle < math.pi - 1e-4:
-        return (angle / (2.0 * math.sin(angle))) * w
-    B = 0.5 * (R + np.eye(3))                         # near pi: B = axis axis^T (+ O(pi - angle))
-    k = int(np.argmax(np.diag(B)))
-    axis = B[:, k] / math.sqrt(B[k, k])
-    return angle * (axis if axis @ w >= 0.0 else -axis)
-
-
-def _orientation_terms(R, R_star, gain):
-    """f_w = -a log(R R*^T) (world angular velocity, (3,)) and V_rot = a/2 |log(R R*^T)|^2: f_w = -grad V_rot."""
-    e = rotation_log(R @ R_star.T)
-    return -gain * e, 0.5 * gain * (e @ e)
-
-
-@dataclass(frozen=True)
-class Attractor:
-    """Linear DS to the pose (p_star (3,), R_star (3, 3)): f = (-a_p (p - p*), -a_r log(R R*^T)) (6,),
-    V = a_p/2 |p - p*|^2 + a_r/2 |log(R R*^T)|^2, conservative (f = -grad V) as Appendix D assumes."""
-    p_star: np.ndarray
-    R_star: np.ndarray = field(default_factory=lambda: np.eye(3))
-    gain_pos: float = 3.0        # 1/s; our choice: stiffness lambda_1 a_p = 450 N/m with lambda_1 = 150
-    gain_rot: float = 8.0        # 1/s; our choice: stiffness lambda_1 a_r = 40 N m/rad with lambda_1 = 5
-
-    def __post_init__(self):
-        object.__setattr__(self, "p_star", _checked("p_star", self.p_star, (3,)))
-        object.__setattr__(self, "R_star", _checked_rotation("R_star", self.R_star))
-        _checked("gain_pos", self.gain_pos, low=0.0), _checked("gain_rot", self.gain_rot, low=0.0)
-
-    def __call__(self, p, R):
-        """-> f (6,), V = (V_pos, V_rot)."""
-        e = p - self.p_star
-        f_w, V_rot = _orientation_terms(R, self.R_star, self.gain_rot)
-        return np.concatenate([-self.gain_pos * e, f_w]), (0.5 * self.gain_pos * (e @ e), V_rot)
-
-
-@dataclass(frozen=True)
-class LimitCycle:
-    """Stable limit cycle in the world y-z plane around `center` (3,) (Sec. 5.3): in polar coordinates
-    (rho, phi) of (y, z): drho/dt = -a (rho - radius), dphi/dt = 2 pi / period, dx/dt = -a (x - x_c);
-    V_pos = a/2 ((rho - radius)^2 + (x - x_c)^2) decreases along f; orientation held at R_star."""
-    center: np.ndarray
-    R_star: np.ndarray = field(default_factory=lambda: np.eye(3))
-    radius: float = 0.1          # m; our choice (the paper gives no size)
-    period: float = 4.0          # s; our choice: 0.16 m/s along the cycle
-    gain_pos: float = 3.0        # 1/s, radial and out-of-plane convergence
-    gain_rot: float = 8.0        # 1/s
-
-    def __post_init__(self):
-        object.__setattr__(self, "center", _checked("center", self.center, (3,)))
-        object.__setattr__(self, "R_star", _checked_rotation("R_star", self.R_star))
-        for name in ("radius", "period", "gain_pos", "gain_rot"):
-            _checked(name, getattr(self, name), low=0.0)
-
-    def __call__(self, p, R):
-        e = p - self.center
-        u = e[1:]                                     # (y, z) relative to the centre
-        rho = np.sqrt(u @ u)
-        radial = u / rho if rho > 1e-12 else np.zeros(2)
-        v_yz = -self.gain_pos * (rho - self.radius) * radial + (2.0 * np.pi / self.period) * np.array([-u[1], u[0]])
-        f_w, V_rot = _orientation_terms(R, self.R_star, self.gain_rot)
-        V_pos = 0.5 * self.gain_pos * ((rho - self.radius) ** 2 + e[0] ** 2)
-        return np.concatenate([[-self.gain_pos * e[0]], v_yz, f_w]), (V_pos, V_rot)
 
 
 # --- passive impedance law (Eq. 7; Kronander and Billard 2016) ----------------------------------------------
@@ -171,19 +76,21 @@ class CPICConfig:
     q_rest: tuple | None = None       # rad, its rest pose; None: the q of the first step after a reset (CPIC)
     fallback_damping: tuple = (20.0,) * 4 + (3.0,) * 3   # N m s/rad, safe torque G + comp - K dq (our choice)
     max_iterations: int = 100         # active-set changes per QP
+    payload_mass: float = 3.0         # kg: a compensation stands for a payload of at most this (the Panda's rated
+    payload_com: float = 0.3          #   payload, RMESettings.max_mass) with |rx|, |ry|, |rz| at most this m (max_com)
 
     def __post_init__(self):
-        for name, shape, strict in (("damping_pos", (3,), 1), ("damping_rot", (3,), 1), ("k1", None, 1),
-                                    ("k2", None, 1), ("null_weight", None, 1), ("null_damping", None, 0),
-                                    ("null_stiffness", None, 0)):
-            _checked(name, getattr(self, name), shape, low=0.0, strict=strict)
-        for name, low, strict in (("tau_max", 0.0, True), ("fallback_damping", 0.0, False), ("q_min", None, True),
-                                  ("q_max", None, True), ("q_rest", None, True)):
-            v = getattr(self, name)
-            if v is not None:
-                _checked(name, v, (np.size(v),), low=low, strict=strict)
-        if not (isinstance(self.max_iterations, (int, np.integer)) and self.max_iterations >= 1):
-            raise ValueError(f"max_iterations: expected an integer >= 1, found {self.max_iterations!r}")
+        """Every field checked (checks.py); upper bounds far beyond any use keep the QP's terms finite (gains 1e4,
+        joint limits within 100 rad, torques 1e4 Nm; CPIC also keeps tau_max within the robot's own limits)."""
+        for name, shape, interval in (("damping_pos", (3,), "(0, 1e4]"), ("damping_rot", (3,), "(0, 1e3]"),
+                                      ("tau_max", (None,), "(0, 1e4]"), ("fallback_damping", (None,), "[0, 1e3]"),
+                                      ("q_min", (None,), "[-100, 100]"), ("q_max", (None,), "[-100, 100]"),
+                                      ("q_rest", (None,), "[-100, 100]")):
+            None if getattr(self, name) is None else checks.array(name, getattr(self, name), shape, interval)
+        for name, interval in (("k1", "(0, 1e4]"), ("k2", "(0, 1e4]"), ("null_weight", "(0, 1e6]"),
+                               ("null_damping", "[0, 1e3]"), ("null_stiffness", "[0, 1e4]"),
+                               ("max_iterations", "1..10000"), ("payload_mass", "[0, 50]"), ("payload_com", "[0, 1]")):
+            checks.number(name, getattr(self, name), interval)
 
 
 @dataclass(frozen=True)
@@ -226,20 +133,24 @@ class CPIC:
     """
 
     def __init__(self, robot, policy, config: CPICConfig | None = None):
+        checks.has_methods("robot", robot, "control_terms", "torque_limits", "jacobian")   # what step calls
         self.robot, self.config = robot, CPICConfig() if config is None else config
-        c, n, rng = self.config, robot.n, robot.model.jnt_range
-        self.q_min = np.asarray(rng[:, 0] if c.q_min is None else c.q_min, dtype=float)
-        self.q_max = np.asarray(rng[:, 1] if c.q_max is None else c.q_max, dtype=float)
-        self.tau_max = np.asarray(c.tau_max, dtype=float)
-        for name, v in (("q_min", self.q_min), ("q_max", self.q_max), ("tau_max", self.tau_max),
-                        ("fallback_damping", np.asarray(c.fallback_damping)),
-                        ("q_rest", np.zeros(n) if c.q_rest is None else np.asarray(c.q_rest))):
-            if v.shape != (n,) or not np.all(np.isfinite(v)):
-                raise ValueError(f"config.{name}: expected {n} finite values (robot.n), found {v.tolist()}")
-        if np.any(self.q_min >= self.q_max) or np.any(self.tau_max <= 0):
-            raise ValueError(f"config: expected q_min < q_max and tau_max > 0, found {self.q_min}, "
-                             f"{self.q_max}, {self.tau_max}")
+        c, n, lim = checks.instance("config", self.config, CPICConfig), robot.n, robot.model.jnt_range
+        self.q_min = checks.array("config.q_min", lim[:, 0] if c.q_min is None else c.q_min, (n,), unit="(robot.n)")
+        self.q_max = checks.array("config.q_max", lim[:, 1] if c.q_max is None else c.q_max, (n,), unit="(robot.n)")
+        checks.array("config.fallback_damping", c.fallback_damping, (n,), unit="(robot.n)")
+        None if c.q_rest is None else checks.array("config.q_rest", c.q_rest, (n,), unit="(robot.n)")
+        self.tau_max = checks.array("config.tau_max", c.tau_max, (n,), unit="(robot.n)")
+        if np.any(self.q_min >= self.q_max):
+            raise ValueError(f"config.q_min: expected q_min < q_max, found {self.q_min.tolist()}, "
+                             f"{self.q_max.tolist()}")
+        if np.any(self.tau_max > robot.torque_limits()):     # a setting can only tighten the drives' own limits
+            raise ValueError(f"config.tau_max: expected limits within the robot's own, robot.torque_limits() = "
+                             f"{robot.torque_limits().tolist()} Nm, found {self.tau_max.tolist()}")
         self._I, self._zeros, self._tau_min, self._X = np.eye(n), np.zeros(n), -self.tau_max, np.zeros((3, n))
+        m, r = c.payload_mass, 3 ** 0.5 * c.payload_com     # _payload_like's bound a d_j + b
+        a = m * (float(np.linalg.norm(robot.g)) + 13.0 + 25.0 * r)
+        self._payload_bound = (a, a * r + 25.0 * m * r * r)
         self._A = np.vstack([np.zeros((2 * n, n)), self._I, -self._I])   # constraint rows; the torque rows: fixed
         self.policy = policy                          # checks it and resets
 
@@ -310,13 +221,10 @@ class CPIC:
         robot, c, n = self.robot, self.config, self.robot.n
         J, M, bias, G, p, R = robot.control_terms(q, dq)          # one kinematics pass; validates q and dq
         q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
-        comp = self._zeros if compensation is None else _checked("compensation", compensation, (n,))
+        comp = self._zeros if compensation is None else self._payload_like(compensation, J)
         if tau_ext is not None:
-            bias = bias - _checked("tau_ext", tau_ext, (n,)) - comp
-        f, V = self.policy(p, R)
-        f = np.asarray(f, dtype=float)
-        if f.shape != (6,) or np.shape(V) != (2,):
-            raise ValueError(f"policy: expected f of shape (6,) and V = (V_pos, V_rot), found {f.shape}, {V}")
+            bias = bias - checks.floats("tau_ext", tau_ext, (n,)) - comp
+        f, V = _policy_output(self.policy(p, R))
         nothing = (G, dq, comp, f, V, np.full(6, np.nan), None, None)
         if not math.isfinite(float(f @ f) + V[0] + V[1]):
             return nothing + ("policy output not finite (or beyond 1e154)",)
@@ -338,6 +246,24 @@ class CPIC:
         if not math.isfinite(float(tau_free @ tau_free) + float(a0 @ a0)):
             return nothing[:5] + (F_c, None, None, "model terms not finite (or beyond 1e154)")
         return G, dq, comp, f, V, F_c, tau_free, (J, Jp, F_t, null, q, c.k2 * dq, Minv, a0), ""
+
+    def _payload_like(self, comp, J):
+        """comp (n,) if a payload of at most payload_mass m with its CoM within r = sqrt(3) payload_com of the ee can
+        need it, else ValueError (garbage is not clipped to full torque). Accelerated within Franka's Cartesian limits
+        a = 13 m/s^2, alpha = 25 rad/s^2 (libfranka's specifications), it loads joint j with at most
+        m (|g| + a + alpha r) (d_j + r) + m r^2 alpha, d_j = |J_v[:, j]|: the ee origin's distance from joint j's
+        axis."""
+        comp, (a, b) = checks.floats("compensation", comp, (self.robot.n,)), self._payload_bound
+        if comp.max() <= b and -comp.min() <= b:      # within b, the bound at d_j = 0: nothing more to check
+            return comp
+        bound = a * np.sqrt(np.einsum("ij,ij->j", J[:3], J[:3])) + b
+        if not np.all(np.abs(comp) <= bound):
+            c = self.config
+            raise ValueError(f"compensation: expected what a payload up to {c.payload_mass:g} kg, CoM within "
+                             f"{c.payload_com:g} m of the ee per axis, can need at this q (CPICConfig.payload_mass, "
+                             f"payload_com): |comp| <= {np.round(bound, 2).tolist()} Nm, found "
+                             f"{np.round(comp, 3).tolist()}")
+        return comp
 
     def _objective(self, J, Jp, F_t, null):
         """H^-1 (n, n), g (n,): H = J^+ J^+T + w N has the closed-form inverse H^-1 = J^T J + N / w = I / w + J^T (J -
@@ -373,6 +299,19 @@ class CPIC:
         return tau, StepInfo(status, 0, np.zeros(0, dtype=int), True, f, V, F_c, tau - comp)
 
 
+def _policy_output(out):
+    """(f (6,), (V_pos, V_rot)) of a policy's output; a wrong type or shape is a ValueError (NaN, inf are not: step
+    falls back to the safe torque and says why)."""
+    f, V = out if type(out) is tuple and len(out) == 2 else (None, None)
+    if type(f) is np.ndarray and f.dtype == np.float64 and f.shape == (6,) and type(V) is tuple and len(V) == 2 and \
+            type(V[0]) in (float, np.float64) and type(V[1]) in (float, np.float64):
+        return f, V                                   # what Attractor and LimitCycle return: the 1 kHz loop's case
+    f, V = checks.real_array(f), checks.real_array(V)
+    if f is None or V is None or f.shape != (6,) or V.shape != (2,):
+        raise ValueError(f"policy: expected (f, (V_pos, V_rot)) with f of 6 real numbers, found {out!r:.80}")
+    return f.astype(float), (float(V[0]), float(V[1]))
+
+
 def _null_projector(robot, q):
     """N = I - J^+ J (n, n) at q: the projector onto the null space of J (pseudo-inverse: any rank)."""
     N = np.eye(robot.n) - np.linalg.pinv(J := robot.jacobian(q)) @ J
@@ -392,9 +331,10 @@ class JointHold:
 
     def __init__(self, robot: Robot, q0, kp=(600.0,) * 4 + (50.0,) * 3, kd=(40.0,) * 4 + (4.0,) * 3):
         self.robot, self.q0 = robot, as_states("q0", q0, robot.n, allow_window=False)[0][0]
-        self.kp, self.kd = np.asarray(kp, dtype=float), np.asarray(kd, dtype=float)
+        self.kp, self.kd = (checks.array(k, v, (robot.n,), "[0, 1e5]") for k, v in (("kp", kp), ("kd", kd)))
 
     def step(self, q, dq, compensation=None, tau_ext=None):
         """(tau (n,), None): the hold's torque for the state q, dq (n,), plus the compensation if given."""
-        tau = self.robot.gravity(q) + self.kp * (self.q0 - q) - self.kd * dq
-        return (tau if compensation is None else tau + compensation), None
+        n = self.robot.n
+        tau = self.robot.gravity(q) + self.kp * (self.q0 - q) - self.kd * checks.floats("dq", dq, (n,))
+        return (tau if compensation is None else tau + checks.floats("compensation", compensation, (n,))), None

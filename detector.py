@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import checks
 from dynamics import pseudo_wrench
 
 ALGORITHM_1_CHECKS = ((431, 450), (351, 370), (271, 290))   # Alg. 1's stabilisation checks: the last 230 ms
@@ -46,32 +47,24 @@ class DetectorSettings:
     lam: float = 0.01                                   # pseudo-wrench damping, authors' public code (paper_notes)
 
     def __post_init__(self):
-        N = self.window
-        if not (isinstance(N, (int, np.integer)) and N >= 2):
-            raise ValueError(f"window: expected an integer >= 2 samples, found {N!r}")
-        if len(self.check_windows) < 1:
-            raise ValueError("check_windows: expected at least one window, found none")
+        """Every field checked (checks.py); upper bounds far beyond use keep the running sums finite: a 100 s window,
+        thresholds of 1e12 Nm^2 (never fires: 7 joints at MAX_TORQUE give 7e8), a side force of 10^4 N, damping 10."""
+        c, N = checks, checks.number("window", self.window, "2..100000", "samples")
+        if not isinstance(self.check_windows, tuple) or not self.check_windows:
+            raise ValueError(f"check_windows: expected a tuple of at least one window, found {self.check_windows!r}")
         named = [("end_window", self.end_window), ("force_window", self.force_window),
                  ("reference_window", self.reference_window), ("settled_window", self.settled_window)]
-        named += [(f"check_windows[{i}]", w) for i, w in enumerate(self.check_windows)]
-        for name, w in named:
-            if not (len(w) == 2 and all(isinstance(i, (int, np.integer)) for i in w) and 1 <= w[0] <= w[1] <= N):
-                raise ValueError(f"{name}: expected (first, last) with 1 <= first <= last <= window = {N}, found {w}")
-        if not (np.isfinite(self.stabilisation_relative) and 0 <= self.stabilisation_relative < 1):
-            raise ValueError(f"stabilisation_relative: expected a share in [0, 1), found {self.stabilisation_relative}")
-        if not (np.isfinite(self.stabilisation_quadratic) and self.stabilisation_quadratic >= 0):
-            raise ValueError(f"stabilisation_quadratic: expected a finite value >= 0 (1/Nm), found "
-                             f"{self.stabilisation_quadratic}")
-        for name in ("activation_threshold", "stabilisation_threshold", "side_force_limit"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a finite value > 0, found {v}")
-        if self.algorithm not in ("referred", "as_printed"):
-            raise ValueError(f"algorithm: expected 'referred' or 'as_printed', found {self.algorithm!r}")
-        if not (isinstance(self.refractory, (int, np.integer)) and self.refractory >= 0):
-            raise ValueError(f"refractory: expected an integer >= 0 samples, found {self.refractory!r}")
-        if not (np.isfinite(self.lam) and self.lam >= 0):
-            raise ValueError(f"lam: expected a finite damping >= 0, found {self.lam}")
+        for name, w in named + [(f"check_windows[{i}]", w) for i, w in enumerate(self.check_windows)]:
+            if not (c.array(name, w, (2,), f"1..{N}", "(first, last) samples")[0] <= w[1]):
+                raise ValueError(f"{name}: expected (first, last) with first <= last, found {w}")
+        c.number("activation_threshold", self.activation_threshold, "(0, 1e12]", "Nm^2")
+        c.number("stabilisation_threshold", self.stabilisation_threshold, "(0, 1e12]", "Nm (Nm^2 for as_printed)")
+        c.number("stabilisation_relative", self.stabilisation_relative, "[0, 1)", "(a share)")
+        c.number("stabilisation_quadratic", self.stabilisation_quadratic, "[0, 1]", "1/Nm")
+        c.number("side_force_limit", self.side_force_limit, "(0, 1e4]", "N")
+        c.choice("algorithm", self.algorithm, ("referred", "as_printed"))
+        c.number("refractory", self.refractory, "0..1000000", "samples")
+        c.number("lam", self.lam, "[0, 10]")
 
 
 def pseudo_force(J, tau_ext, lam=DetectorSettings.lam, check=True):
@@ -158,21 +151,14 @@ class Detector:
     def update(self, tau_ext, force=None, J=None) -> bool:
         """Add one sample: tau_ext (n,) [Nm, paper sign] and either the world-frame pseudo-force (3,) [N] or the
         Jacobian J (6, n) to compute it from. Returns True when a load change is detected at this sample."""
-        tau = np.asarray(tau_ext, dtype=float)
-        if tau.shape != (self.n,) or not np.all(np.isfinite(tau)) or np.abs(tau).max() > MAX_TORQUE:
-            raise ValueError(f"tau_ext: expected finite values within +-{MAX_TORQUE:g} Nm of shape ({self.n},), found "
-                             f"{tau.shape} {tau}")
+        tau = checks.array("tau_ext", tau_ext, (self.n,), f"[-{MAX_TORQUE:g}, {MAX_TORQUE:g}]", "Nm")
         if (force is None) == (J is None):
             raise ValueError("force, J: expected exactly one of them, found "
                              f"{'both' if force is not None else 'neither'}")
         if force is None:
-            J = np.asarray(J, dtype=float)
-            if J.shape != (6, self.n) or not np.all(np.isfinite(J)):
-                raise ValueError(f"J: expected finite values of shape (6, {self.n}), found {J.shape}")
+            J = checks.array("J", J, (6, self.n))
             force = pseudo_force(J, tau, self.settings.lam)
-        force = np.asarray(force, dtype=float)
-        if force.shape != (3,) or not np.all(np.isfinite(force)) or np.abs(force).max() > 1e3 * MAX_TORQUE:
-            raise ValueError(f"force: expected finite values of shape (3,), found {force.shape} {force}")
+        force = checks.array("force", force, (3,), f"[-{1e3 * MAX_TORQUE:g}, {1e3 * MAX_TORQUE:g}]", "N")
         return self.push(tau, force)
 
     def push(self, tau, force):

@@ -8,6 +8,8 @@ import os
 import mujoco
 import numpy as np
 
+import checks
+
 PANDA_XML = os.path.join(os.path.dirname(os.path.abspath(__file__)), "panda.xml")
 Q_READY = np.array([0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4])   # Franka's ready pose (rad)
 
@@ -16,22 +18,16 @@ def as_states(name, x, n, allow_window=True):
     """Checked float array of shape (n,) or (T, n); returns (array (T, n), batched)."""
     if type(x) is np.ndarray and x.shape == (n,) and x.dtype == np.float64 and np.isfinite(x.sum()):
         return x[None], False                          # fast path for the 1 kHz loop
-    try:
-        a = np.asarray(x, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a numeric array of shape ({n},) or (T, {n}), "
-                         f"found {type(x).__name__}") from None
-    if a.ndim == 1 and a.shape[0] == n:
-        batched = False
-    elif allow_window and a.ndim == 2 and a.shape[1] == n and a.shape[0] > 0:
-        batched = True
-    else:
+    if (a := checks.real_array(x)) is None:            # bool, complex, text, objects, ragged: refused, never cast
+        raise ValueError(f"{name}: expected a real array of shape ({n},) or (T, {n}), found {checks.kind(x)}")
+    batched = allow_window and a.ndim == 2 and a.shape[1] == n and a.shape[0] > 0
+    if not batched and a.shape != (n,):
         want = f"({n},) or (T, {n})" if allow_window else f"({n},)"
         raise ValueError(f"{name}: expected shape {want}, found {a.shape}")
     if not np.all(np.isfinite(a)):
         idx = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
         raise ValueError(f"{name}: expected finite values, found {a[idx]} at index {idx}")
-    return np.atleast_2d(a), batched
+    return np.atleast_2d(np.asarray(a, dtype=float)), batched
 
 
 def phi_of(theta):
@@ -55,15 +51,13 @@ def pseudo_wrench(J, tau_ext, lam, check=True):
     loop, whose inputs are checked once upstream)."""
     if not check:
         return np.linalg.solve(J @ np.swapaxes(J, -1, -2) + lam * np.eye(6), (J @ tau_ext[..., None]))[..., 0]
-    J, tau_ext = np.asarray(J, dtype=float), np.asarray(tau_ext, dtype=float)
+    J = checks.array("J", J, (None,) * np.ndim(J))                 # real, finite (bool, complex refused)
+    tau_ext = checks.array("tau_ext", tau_ext, (None,) * np.ndim(tau_ext))
     if J.ndim not in (2, 3) or J.shape[-2] != 6:
         raise ValueError(f"J: expected shape (6, n) or (T, 6, n), found {J.shape}")
     if tau_ext.shape != J.shape[:-2] + J.shape[-1:]:
         raise ValueError(f"tau_ext: expected shape {J.shape[:-2] + J.shape[-1:]}, found {tau_ext.shape}")
-    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(tau_ext))):
-        raise ValueError("J, tau_ext: expected finite values, found NaN or inf")
-    if not (np.isfinite(lam) and lam >= 0):
-        raise ValueError(f"lam: expected a finite damping >= 0, found {lam}")
+    lam = checks.number("lam", lam, "[0, 1e3]", "(damping)")
     A = J @ np.swapaxes(J, -1, -2) + lam * np.eye(6)                      # (..., 6, 6)
     return np.linalg.solve(A, (J @ tau_ext[..., None]))[..., 0]
 
@@ -93,6 +87,8 @@ class Robot:
     """
 
     def __init__(self, model: mujoco.MjModel, ee: str = "ee"):
+        if not isinstance(ee, str):                     # (MuJoCo's name lookup crashes on None)
+            raise ValueError(f"ee: expected the name of a site (text), found {ee!r}")
         site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, ee)
         if site < 0:
             names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(model.nsite)]
@@ -115,7 +111,7 @@ class Robot:
 
     @classmethod
     def from_xml(cls, path, ee: str = "ee") -> "Robot":
-        if not os.path.isfile(path):
+        if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
             raise ValueError(f"path: expected an MJCF file, found no file at {path!r}")
         try:
             model = mujoco.MjModel.from_xml_path(str(path))

@@ -3,7 +3,6 @@
 paper's sign (Eq. 1) is minus libfranka's tau_ext_hat_filtered; the command sent excludes gravity (libfranka adds G)."""
 from __future__ import annotations
 
-import argparse
 import contextlib
 import gc
 import json
@@ -15,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import checks
 from cpic import CPIC, Attractor, CPICConfig, LimitCycle
 from dynamics import Robot
 from error_model import as_error_model
@@ -38,6 +38,9 @@ class SafetyConfig:
     max_step: float = 1.0          # Nm per 1 ms cycle: Franka's dtau_max = 1000 Nm/s (panda_facts.md); libfranka's
                                    #   own rate limiter does not act on the read/write path, so this one does
 
+    def __post_init__(self):       # a safety setting can only tighten the robot's own limit
+        checks.number("config.max_step", self.max_step, "(0, 1]", "Nm per cycle (Franka's dtau_max x 1 ms)")
+
 
 class Safety:
     """The last stage before the robot. command(tau, G) takes the controller's full torque tau (n,) (gravity
@@ -48,11 +51,8 @@ class Safety:
     3. |cmd + G| <= tau_max per joint (torque limit; it wins over the rate limit when both cannot hold)."""
 
     def __init__(self, tau_max, config: SafetyConfig = SafetyConfig()):
-        self.tau_max = np.asarray(tau_max, dtype=float)
-        if self.tau_max.ndim != 1 or not np.all(np.isfinite(self.tau_max)) or np.any(self.tau_max <= 0):
-            raise ValueError(f"tau_max: expected finite limits > 0 Nm (n,), found {tau_max!r}")
-        if not (np.isfinite(config.max_step) and config.max_step > 0):
-            raise ValueError(f"config.max_step: expected a torque step > 0 Nm, found {config.max_step!r}")
+        self.tau_max = checks.array("tau_max", tau_max, (None,), "(0, 1e4]", "Nm")
+        checks.instance("config", config, SafetyConfig)
         self.config, self.last, self.held = config, np.zeros(self.tau_max.size), 0
 
     def command(self, tau, G) -> np.ndarray:
@@ -87,8 +87,7 @@ def make_controller(robot: Robot, q0, task: str = "hold", stiffness_scale: float
     and the posture spring scaled by stiffness_scale (1: the project's defaults, cpic.py)."""
     if task not in TASKS:
         raise ValueError(f"task: expected one of {TASKS}, found {task!r}")
-    if not (np.isfinite(stiffness_scale) and 0 < stiffness_scale <= 1):
-        raise ValueError(f"stiffness_scale: expected a scale in (0, 1], found {stiffness_scale!r}")
+    checks.number("stiffness_scale", stiffness_scale, "(0, 1]")
     p0, R0 = robot.ee_pose(np.asarray(q0, dtype=float))
     S = float(stiffness_scale)
     if task == "hold":
@@ -109,8 +108,7 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     (the robot backends then command nothing) and prints what it would command every print_every s. Ends after
     `seconds`, on Ctrl-C or on any exception with the command ramped to zero at the rate limit and backend.stop();
     an exception is raised again after that. Returns (summary, log arrays)."""
-    if not (np.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"seconds: expected a finite duration > 0 s, found {seconds!r}")
+    checks.number("seconds", seconds, "(0, 600]", "s (the log keeps every cycle: 10 min is about 250 MB)")
     n, steps = robot.n, int(round(seconds * 1000))
     safety, limit = Safety(robot.torque_limits()), robot.torque_limits()
     rec = {k: np.full((steps, n), np.nan) for k in ("q", "dq", "tau_J", "tau_ext", "tau", "tau_cmd")}
@@ -326,21 +324,24 @@ def make_backend(args, rng: np.random.Generator):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = checks.Parser(prog="franka.py", description=__doc__.splitlines()[0])
     ap.add_argument("--robot-ip", help="the robot's FCI address (not needed with --sim)")
     ap.add_argument("--lib", choices=LIBS, default="pylibfranka")
     ap.add_argument("--task", choices=TASKS, default="hold")
-    ap.add_argument("--seconds", type=float, default=10.0)
-    ap.add_argument("--log", help="write the run to this .npz (diagnosis.logs.load_log reads it)")
+    ap.add_argument("--seconds", type=checks.argument("(0, 600]", "s"), default=10.0,
+                    help="run time in (0, 600] s (the log keeps every cycle: 10 min is about 250 MB)")
+    ap.add_argument("--log", type=checks.writable, help="write the run to this .npz (diagnosis.logs.load_log reads it)")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     ap.add_argument("--plot", metavar="FILE", help="save a figure of the run: the estimate over time (needs matplotlib)")
     ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
     ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
-    ap.add_argument("--sim-payload", type=float, default=0.0, help="with --sim: kg added at half time, its CoM at "
-                    f"{SIM_COM} m in the ee frame (off the flange's axis)")
-    ap.add_argument("--stiffness-scale", type=float, default=1.0, help="DS gains and posture spring x S, (0, 1]")
+    ap.add_argument("--sim-payload", type=checks.argument("[0, 3]", "kg"), default=0.0,
+                    help="kg in [0, 3] added at half time with --sim (CoM: SIM_COM)")
+    ap.add_argument("--stiffness-scale", type=checks.argument("(0, 1]"), default=1.0,
+                    help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
-    ap.add_argument("--seed", type=int, default=0, help="the --sim plant's noise")
+    ap.add_argument("--seed", type=checks.argument("0..4294967294"), default=0,
+                    help="the --sim plant's noise, 0..4294967294")
     ap.add_argument("--paced", action="store_true", help="with --sim: one state per ms of wall time, as a robot")
     ap.add_argument("--worker", choices=WORKERS, default="process", help="where RME's estimates run beside the loop")
     ap.add_argument("--sync-estimate", action="store_true", help="RME's estimates within the callback, no worker")
@@ -358,12 +359,6 @@ def main(argv=None) -> int:
     if args.identify:                                  # robot/identify.py: the motion, the fit, the forms
         from robot.identify import franka_identify
         return franka_identify(args, run_loop, make_backend)
-    for name, v, ok, want in (("--seconds", args.seconds, np.isfinite(args.seconds) and args.seconds > 0, "> 0 s"),
-                              ("--stiffness-scale", args.stiffness_scale,
-                               np.isfinite(args.stiffness_scale) and 0 < args.stiffness_scale <= 1, "in (0, 1]"),
-                              ("--sim-payload", args.sim_payload, 0 <= args.sim_payload <= 3, "0..3 kg")):
-        if not ok:
-            raise ValueError(f"{name}: expected {want}, found {v!r}")
     robot = Robot.panda()
     try:                                               # the estimator, rebuilt as it is in a worker process; a
         spec = EstimatorSpec(seed=args.seed + 1, calibration=args.calibration, tool=args.tool)   # calibration
@@ -417,4 +412,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except (ValueError, RuntimeError, OSError) as err:     # a failure is one line on stderr (exit status 1)
+        sys.exit(f"franka.py: {type(err).__name__}: {err}")

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+import checks
 from dynamics import pseudo_wrench
 
 WEIGHTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights.npz")
@@ -221,8 +222,7 @@ def features(robot, q, tau_ext, cfg=NetConfig(), kinematics=None):
     ~50 ms before it), which removes the pose-dependent bias a real Panda shows. M samples are taken evenly
     spaced from the window (Appendix F); W is expressed in the ee frame, W_ee = diag(R^T, R^T) W_world, because
     theta's CoM is in the ee frame and the network is not told the pose otherwise (our choice, README)."""
-    q, tau_ext = np.asarray(q, dtype=float), np.asarray(tau_ext, dtype=float)
-    n = robot.n
+    q, tau_ext, n = checks.real("q", q), checks.real("tau_ext", tau_ext), robot.n   # (bool, complex: refused)
     if q.ndim != 2 or q.shape[1] != n:
         raise ValueError(f"q: expected shape (T, {n}), found {q.shape}")
     if tau_ext.shape != q.shape:
@@ -348,7 +348,7 @@ class MismatchNet:
 
     def predict(self, x):
         """x (B, M, 6) or (M, 6) raw pseudo-wrenches (from `features`) -> theta (B, 4) or (4,)."""
-        a = np.asarray(x, dtype=float)
+        a = checks.real("x", x)                       # (bool, complex: refused, never cast)
         single = a.ndim == 2
         shape = (self.net.M, self.net.d_in)
         if a.shape[-2:] != shape or a.ndim not in (2, 3):

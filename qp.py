@@ -10,6 +10,8 @@ from functools import cached_property
 import numpy as np
 from scipy.linalg import blas, lapack
 
+import checks
+
 
 @dataclass(frozen=True)
 class QPInfo:
@@ -41,8 +43,8 @@ def solve_qp(H, g, A, b, active=None, max_iterations=None):
     if bad:
         raise ValueError(f"H: expected positive definite, found eigenvalues {np.linalg.eigvalsh(H)}")
     W = [] if active is None else _checked_active(active, m)
-    if max_iterations is None:
-        max_iterations = 5 * (n + m) + 10
+    max_iterations = 5 * (n + m) + 10 if max_iterations is None else checks.number("max_iterations", max_iterations,
+                                                                                 "1..1000000")
     # y = L^T x turns H into I: min 1/2 |y|^2 + u^T y s.t. V y >= b with V^T = L^-1 A^T (n, m), u = L^-1 g (n,)
     VT = blas.dtrsm(1.0, L, A.T, 0, 1) if m else A.T
     y, status, it, W, mult = _unit(VT, blas.dtrsv(L, g, 1, 0, 1), b, W, int(max_iterations), 1e-11)
@@ -53,6 +55,10 @@ def solve_qp(H, g, A, b, active=None, max_iterations=None):
 
 def _checked_problem(H, g, A, b):
     """(H, g, A, b) as float arrays of consistent shapes and finite values, H symmetric; else ValueError."""
+    if not all(type(v) is np.ndarray and v.dtype == np.float64 for v in (H, g, A, b)):
+        for name, v in (("H", H), ("g", g), ("A", A), ("b", b)):   # bool, complex, text: refused, never cast
+            if checks.real_array(v) is None:
+                raise ValueError(f"{name}: expected real numbers, found {checks.kind(v)}")
     H, g, A, b = (np.asarray(H, dtype=float), np.asarray(g, dtype=float), np.asarray(A, dtype=float),
                   np.asarray(b, dtype=float))
     n = g.shape[0] if g.ndim == 1 else 0

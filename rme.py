@@ -4,12 +4,14 @@ compares the nominal model with a robot log and finds the missing physical effec
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 
 import numpy as np
 from scipy.linalg import lapack
 
+import checks
 import vi
 from detector import Detector, safe_theta
 from dynamics import Robot, as_states
@@ -38,20 +40,22 @@ class RME(Streaming):
 
     def __init__(self, robot: Robot | None = None, weights: str | None = WEIGHTS, settings: RMESettings = RMESettings(),
                  rng: np.random.Generator | None = None, correction=None, executor=None, calibration=None, tool=None):
-        self.robot = Robot.panda() if robot is None else robot
+        self.robot = Robot.panda() if robot is None else checks.instance("robot", robot, Robot)
         self.error_model = as_error_model(calibration, self.robot.n)
         if len(self.error_model.absolute) != self.robot.n:
             raise ValueError(f"calibration: expected an error model of {self.robot.n} joints, found "
                              f"{len(self.error_model.absolute)} ({self.error_model.source})")
         self.tool = None if tool is None else load_tool(tool)        # ValueError naming what is wrong
         self._tool_phi = np.zeros(4) if tool is None else phi_of_tool(self.tool)   # (m, m c) in the ee frame
-        self.settings, self.correction, self.executor = settings, correction, executor
+        self.settings = checks.instance("settings", settings, RMESettings)
+        self.correction = None if correction is None else checks.has_methods("correction", correction, "correction")
+        self.executor = executor if executor is None else checks.has_methods("executor", executor, "submit")
         self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
                                                        #   a request; (generator, sample): a detection's steps
-        self.rng = np.random.default_rng(0) if rng is None else rng
+        self.rng = np.random.default_rng(0) if rng is None else checks.generator("rng", rng)
+        if not (weights is None or isinstance(weights, (str, os.PathLike))):
+            raise ValueError(f"weights: expected a weights file's path or None, found {weights!r:.60}")
         self.net = MismatchNet.load(weights) if settings.use_network and weights is not None else None  # or ValueError
-        if not isinstance(settings, RMESettings):
-            raise ValueError(f"settings: expected an RMESettings, found {type(settings).__name__}")
         self.detector = Detector(settings.detector, n=self.robot.n)
         n, keep = self.robot.n, settings.detector.window
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
@@ -92,9 +96,7 @@ class RME(Streaming):
         then estimated at its detection (or by the monitor's check of a slow arm), not held as a possible press
         (RMESettings.hold_axial). A person pressing on the hand meanwhile is taken for the load it looks like, as
         with hold_axial = 0."""
-        if isinstance(seconds, bool) or not (isinstance(seconds, (int, float, np.integer, np.floating))
-                                             and 0 <= seconds < math.inf):
-            raise ValueError(f"seconds: expected a finite time >= 0 s, found {seconds!r}")
+        checks.number("seconds", seconds, "[0, 3600]", "s")
         self._expected = max(self._expected, self._k + 1 + int(round(seconds * self.settings.rate)))   # (a shorter
                                                                                         #   call keeps a longer one)
 
@@ -125,14 +127,14 @@ class RME(Streaming):
         """A checked (q, tau) (T, n) window, less the baseline and the correction."""
         n, q_in, tau_in = self.robot.n, q, tau_ext
         q, qb = as_states("q", q, n)
-        tau, tb = as_states("tau_ext", tau_ext, n)
+        tau, tb = self._torques("tau_ext", tau_ext)
         if not (qb and tb) or q.shape != tau.shape:
             raise ValueError(f"q, tau_ext: expected two windows of the same shape (T, {n}), found "
                              f"{np.shape(q_in)} and {np.shape(tau_in)}")
         if q.shape[0] < 20:
             raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
         if baseline is not None:
-            tau = tau - as_states("baseline", baseline, n, allow_window=False)[0]
+            tau = tau - self._torques("baseline", baseline, allow_window=False)[0]
         if not referred:                                             # an absolute window: the calibrated mean
             tau = tau - np.asarray(self.error_model.offset)          #   model error, and the known tool's weight
             if self.tool is not None:
@@ -143,6 +145,15 @@ class RME(Streaming):
                 raise ValueError(f"dq: expected shape {q.shape} like q, found {dq.shape}")
             tau = tau - self.correction.correction(q, dq)
         return q, tau
+
+    def _torques(self, name, x, allow_window=True):
+        """as_states, every torque within settings.max_abs_torque (beyond it a sensor fault, not a load)."""
+        tau, batched = as_states(name, x, self.robot.n, allow_window)
+        if (big := np.argwhere(np.abs(tau) > self.settings.max_abs_torque)).size:
+            i = tuple(int(k) for k in big[0])
+            raise ValueError(f"{name}: expected torques within settings.max_abs_torque = "
+                             f"{self.settings.max_abs_torque:g} Nm, found {tau[i]:g} at index {i if batched else i[1]}")
+        return tau, batched
 
     def _estimate(self, q, tau, referred=True):
         """Network prior and VI on checked, corrected windows (or lists): (Estimate, S) with S (n + 5, 4) what
@@ -188,9 +199,10 @@ class RME(Streaming):
         level, that level must stay within monitor_threshold of the level explained there, or RME estimates again."""
         n, keep, s = self.robot.n, self.settings.detector.window, self.settings
         q, dq = as_states("q", q, n, allow_window=False)[0][0], as_states("dq", dq, n, allow_window=False)[0][0]
-        tau = np.asarray(tau_ext, dtype=float)
-        if tau.shape != (n,):
-            raise ValueError(f"tau_ext: expected shape ({n},), found {tau.shape}")
+        tau = tau_ext if type(tau_ext) is np.ndarray and tau_ext.dtype == np.float64 else checks.real_array(tau_ext)
+        if tau is None or tau.shape != (n,):             # (not finite: dropped below, as a sensor fault)
+            raise ValueError(f"tau_ext: expected real values of shape ({n},), found "
+                             f"{checks.kind(tau_ext) if tau is None else tau.shape}")
         if faulty(tau, s.max_abs_torque):
             self.dropped += 1                          # a sensor fault, not a load: never reaches the estimator
             return self._last

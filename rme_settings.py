@@ -6,8 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import checks
 import vi
-from detector import DetectorSettings
+from detector import MAX_TORQUE, DetectorSettings
 
 
 @dataclass(frozen=True)
@@ -65,39 +66,44 @@ class RMESettings:
     detector: DetectorSettings = field(default_factory=DetectorSettings)
 
     def __post_init__(self):
-        keep, settled = self.detector.window, self.detector.settled_window[1]
-        checks = [("window", self.window, 20 <= self.window <= keep, f"20..{keep} samples (the detector's window)"),
-                  ("reference", self.reference, 1 <= self.reference <= settled,
-                   f"1..{settled} samples (the detector checks those precede the change)"),
-                  ("rate", self.rate, self.rate > 0, "a rate > 0 Hz"),
-                  ("max_mass", self.max_mass, self.max_mass > 0, "a mass > 0 kg"),
-                  ("max_com", self.max_com, self.max_com > 0, "a distance > 0 m"),
-                  ("min_explained", self.min_explained, self.min_explained <= 1, "a share <= 1"),
-                  ("rest_speed", self.rest_speed, self.rest_speed > 0, "a speed > 0 rad/s"),
-                  ("monitor_threshold", self.monitor_threshold, self.monitor_threshold > 0, "a torque > 0 Nm"),
-                  ("monitor_far", self.monitor_far, self.monitor_far > self.monitor_threshold, "a torque > the threshold"),
-                  ("monitor_slow", self.monitor_slow, isinstance(self.monitor_slow, tuple) and len(self.monitor_slow)
-                   == 2 and all(isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
-                                and 0 <= x < np.inf for x in self.monitor_slow)
-                   and (self.monitor_slow[0] == 0 or self.monitor_slow[0] > self.monitor_speed)
-                   and self.monitor_slow[1] > self.monitor_threshold,
-                   "(speed, level): a speed of 0 (off) or above monitor_speed rad/s and a finite torque above "
-                   "monitor_threshold Nm"),
-                  ("monitor_window", self.monitor_window, self.window <= self.monitor_window <= keep,
-                   f"{self.window}..{keep} samples"),
-                  ("max_abs_torque", self.max_abs_torque, 0 < self.max_abs_torque <= 1e4, "a torque in (0, 1e4] Nm"),
-                  ("refine_within", self.refine_within, self.refine_within > 0, "a time > 0 s"),
-                  ("hold_axial", self.hold_axial, 0 <= self.hold_axial < np.inf, "a finite time >= 0 s"),
-                  ("axial_radius", self.axial_radius, np.shape(self.axial_radius) == (2,) and all(
-                      isinstance(x, (int, float)) and 0 <= x < np.inf for x in self.axial_radius),
-                   "(while moving, at rest): two finite distances >= 0 m"),
-                  ("accumulate_angle", self.accumulate_angle, 0 < self.accumulate_angle < np.pi, "an angle in (0, pi)"),
-                  ("detector.check_windows", self.detector.check_windows, self.detection_window >= 20,
-                   "an earliest check that leaves at least 20 samples after it (the detection's window)")]
-        for name, value, ok, want in checks:
-            if not ok or (isinstance(value, float) and np.isnan(value)):
-                raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
-
+        """Every field checked where it is given (checks.py); the upper bounds keep every product with a rate or a
+        torque finite and are far beyond any arm: 10 kHz loops, 50 kg payloads (UR30: 30 kg), 1 m CoMs (the Panda
+        reaches 0.855 m), a minute of waiting, torques up to max_abs_torque (<= the detector's MAX_TORQUE)."""
+        d, c, top = self.detector, checks, repr(float(checks.number("settings.max_abs_torque", self.max_abs_torque,
+                                                                      f"(0, {MAX_TORQUE:g}]", "Nm")))
+        keep, settled = checks.instance("settings.detector", d, DetectorSettings).window, d.settled_window[1]
+        checks.instance("settings.vi", self.vi, vi.VISettings)
+        for name in ("use_network", "asynchronous", "refine", "monitor", "accumulate"):
+            c.flag(f"settings.{name}", getattr(self, name))
+        c.number("settings.window", self.window, f"20..{keep}", "samples (the detector's window)")
+        c.number("settings.reference", self.reference, f"1..{settled}", "samples (the detector checks they precede "
+                 "the change)")
+        c.number("settings.rate", self.rate, "[10, 1e4]", "Hz")
+        c.number("settings.max_mass", self.max_mass, "(0, 50]", "kg")
+        c.number("settings.max_com", self.max_com, "(0, 1]", "m")
+        c.number("settings.min_explained", self.min_explained, "[0, 1]", "(a share)")
+        c.number("settings.first_explained", self.first_explained, "[0, 1]", "(a share)")
+        c.number("settings.rest_speed", self.rest_speed, "(0, 1]", "rad/s")
+        c.number("settings.refine_within", self.refine_within, "(0, 60]", "s")
+        c.number("settings.monitor_threshold", self.monitor_threshold, f"(0, {top})", "Nm")
+        c.number("settings.monitor_window", self.monitor_window, f"{self.window}..{keep}", "samples")
+        c.number("settings.monitor_far", self.monitor_far, f"({float(self.monitor_threshold)!r}, {top}]",
+                 "Nm (above monitor_threshold)")
+        c.number("settings.monitor_speed", self.monitor_speed, "(0, 1]", "rad/s")
+        slow = c.array("settings.monitor_slow", self.monitor_slow, (2,), f"[0, {top}]",
+                       "(speed rad/s, level Nm)")
+        if not isinstance(self.monitor_slow, tuple) or not (slow[0] == 0 or self.monitor_speed < slow[0] <= 1) or \
+                slow[1] <= self.monitor_threshold:
+            raise ValueError(f"settings.monitor_slow: expected (speed, level): a speed of 0 (off) or above "
+                             f"monitor_speed up to 1 rad/s and a finite torque above monitor_threshold Nm, found "
+                             f"{self.monitor_slow!r}")
+        c.number("settings.pose_tolerance", self.pose_tolerance, "(0, 3.1416]", "rad")
+        c.number("settings.hold_axial", self.hold_axial, "[0, 60]", "s")
+        c.array("settings.axial_radius", self.axial_radius, (2,), "[0, 1]", "m (while moving, at rest)")
+        c.number("settings.accumulate_angle", self.accumulate_angle, "(0, 3.1416)", "rad")
+        if self.detection_window < 20:
+            raise ValueError(f"settings.detector.check_windows: expected an earliest check that leaves at least 20 "
+                             f"samples after it (the detection's window), found {d.check_windows}")
 
     @property
     def detection_window(self) -> int:

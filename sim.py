@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+import checks
 from dynamics import PANDA_XML, Q_READY, Robot, as_states, inertia_matrix
 
 N = 7
@@ -52,18 +53,21 @@ class PlantConfig:
     observer_gain: float = 100.0           # 1/s, momentum observer bandwidth
 
     def __post_init__(self):
-        for name in ("tau_noise", "tau_step", "bias_amp", "torque_offset", "mass_scale", "viscous", "coulomb",
-                     "armature"):
-            v = np.asarray(getattr(self, name), dtype=float)
-            if v.shape != (N,) or not np.all(np.isfinite(v)):
-                raise ValueError(f"config.{name}: expected {N} finite values, found {getattr(self, name)!r}")
-        if np.asarray(self.com_shift, dtype=float).shape != (N, 3):
-            raise ValueError(f"config.com_shift: expected ({N}, 3) values, found {self.com_shift!r}")
-        if self.friction_sigmoid is not None and np.asarray(self.friction_sigmoid, dtype=float).shape != (3, N):
-            raise ValueError(f"config.friction_sigmoid: expected (p1, p2, p3), each {N} values, found "
-                             f"{self.friction_sigmoid!r}")
-        if not 0.0 <= self.stale_prob < 1.0:
-            raise ValueError(f"config.stale_prob: expected a probability in [0, 1), found {self.stale_prob}")
+        """Every field checked (checks.py); the bounds lie far beyond any arm's (torque noise, offsets, friction of
+        tens of Nm, CoM shifts of half a metre; viscous from -0.1: Gaz et al. identify -0.0132 on joint 6);
+        observer_gain up to 1/dt = 1000 1/s, where the discrete observer r_k = K (... - dt r_(k-1)) alternates."""
+        for name, interval in (("tau_noise", "[0, 10]"), ("tau_step", "[0, 10]"), ("bias_amp", "[0, 10]"),
+                               ("torque_offset", "[-10, 10]"), ("mass_scale", "(0, 10]"), ("viscous", "[-0.1, 100]"),
+                               ("coulomb", "[0, 100]"), ("armature", "[0, 10]")):
+            checks.array(f"config.{name}", getattr(self, name), (N,), interval)
+        checks.array("config.com_shift", self.com_shift, (N, 3), "[-0.5, 0.5]", "m")
+        None if self.friction_sigmoid is None else checks.array("config.friction_sigmoid", self.friction_sigmoid,
+                                                                 (3, N), "[-1e3, 1e3]", "(p1 Nm, p2 s/rad, p3 rad/s)")
+        for name, interval in (("q_noise", "[0, 0.1]"), ("dq_noise", "[0, 1]"), ("stale_prob", "[0, 1)"),
+                               ("coulomb_width", "(0, 10]"), ("observer_gain", "(0, 1000]")):
+            checks.number(f"config.{name}", getattr(self, name), interval)
+        checks.array("config.gravity_tilt", self.gravity_tilt, (2,), "[-1.5708, 1.5708]", "rad")
+        checks.choice("config.observer", self.observer, ("exact", "momentum"))
 
     @staticmethod
     def ideal() -> "PlantConfig":
@@ -127,9 +131,8 @@ class Plant:
 
     def __init__(self, config: PlantConfig | None = None, rng: np.random.Generator | None = None,
                  xml: str = PANDA_XML):
-        self.config = config = PlantConfig.ideal() if config is None else config
-        if config.observer not in ("exact", "momentum"):
-            raise ValueError(f"config.observer: expected 'exact' or 'momentum', found {config.observer!r}")
+        self.config = config = PlantConfig.ideal() if config is None else checks.instance("config", config, PlantConfig)
+        None if rng is None else checks.generator("rng", rng)
         if rng is None and _needs_rng(config):
             raise ValueError("rng: a np.random.Generator is needed for noisy sensors, found None")
         self.rng = rng
@@ -195,26 +198,18 @@ class Plant:
 
     def schedule_payload(self, t, m, r=(0.0, 0.0, 0.0), inertia=None):
         """Change the payload at simulation time t [s] (m = 0 removes it); checked now, applied then."""
-        if not np.isfinite(t):
-            raise ValueError(f"t: expected a finite time in s, found {t}")
-        m, r, inertia = _check_payload(m, r, inertia)
+        t, (m, r, inertia) = checks.number("t", t, "[0, 1e6]", "s"), _check_payload(m, r, inertia)
         self._events.append((float(t), (m, r, inertia)))
         self._events.sort(key=lambda e: e[0])
 
     def push(self, force, body="link7", offset=(0.0, 0.0, 0.0), start=0.0, duration=0.5):
         """A human push: world force (3,) [N] at a point `offset` (body frame) of `body`, from start for duration [s]."""
-        f = np.asarray(force, dtype=float)
-        if f.shape != (3,) or not np.all(np.isfinite(f)):
-            raise ValueError(f"force: expected a finite (3,) force in N, found {force}")
-        bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, body)
-        if bid < 0:
-            raise ValueError(f"body: no body named {body!r} in the plant")
-        o = np.asarray(offset, dtype=float)
-        if o.shape != (3,) or not np.all(np.isfinite(o)):
-            raise ValueError(f"offset: expected a finite point (3,) in the body frame, found {offset}")
-        if not (np.isfinite(start) and np.isfinite(duration) and duration >= 0):
-            raise ValueError(f"start, duration: expected finite times, duration >= 0, found {start}, {duration}")
-        self._pushes.append(_Push(f, bid, np.asarray(offset, float), float(start), float(start + duration)))
+        f = checks.array("force", force, (3,), "[-1e4, 1e4]", "N")
+        if not isinstance(body, str) or (bid := mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, body)) < 0:
+            raise ValueError(f"body: expected the name of a body of the plant, found {body!r}")   # (None crashes)
+        o = checks.array("offset", offset, (3,), "[-2, 2]", "m")
+        start, duration = (checks.number(k, v, "[0, 1e6]", "s") for k, v in (("start", start), ("duration", duration)))
+        self._pushes.append(_Push(f, bid, o, start, start + duration))
 
     # --- stepping ------------------------------------------------------------------------------
     @property
@@ -223,9 +218,10 @@ class Plant:
 
     def step(self, tau) -> Sample:
         """Apply joint torque tau (7,) [Nm] (clipped to 87/12 Nm) for one time step; the Sample at the new time."""
-        tau = np.asarray(tau, dtype=float)
-        if tau.shape != (N,):
-            raise ValueError(f"tau: expected shape ({N},), found {tau.shape}")
+        if (a := checks.real_array(tau)) is None or a.shape != (N,):      # bool, complex: refused, never cast
+            raise ValueError(f"tau: expected shape ({N},) of real values, found "
+                             f"{checks.kind(tau) if a is None else a.shape}")
+        tau = a.astype(float)
         if not np.all(np.isfinite(tau)):
             raise ValueError(f"tau: expected finite torques, found {tau.tolist()} (a real drive would fault)")
         return self._advance(np.clip(tau, -self.tau_max, self.tau_max), integrate=True)
@@ -331,16 +327,10 @@ class Plant:
 
 def _check_payload(m, r, inertia):
     """(m, r (3,), I (3, 3) about the CoM in the ee frame) checked; inertia None = point mass, (6,) = pinocchio order."""
-    try:
-        m = float(m)
-    except (TypeError, ValueError):
-        raise ValueError(f"m: expected a mass in kg, found {m!r}") from None
-    if not np.isfinite(m) or m < 0:
-        raise ValueError(f"m: expected a finite mass >= 0 kg, found {m}")
-    r = np.asarray(r, dtype=float)
-    if r.shape != (3,) or not np.all(np.isfinite(r)):
-        raise ValueError(f"r: expected a finite CoM of shape (3,) in m, found {r.tolist()}")
-    I = np.zeros((3, 3)) if inertia is None else np.asarray(inertia, dtype=float)
+    m = checks.number("m", m, "[0, 100]", "kg", what="a mass")        # (beyond any arm's payload)
+    r = checks.array("r", r, (3,), "[-2, 2]", "m (the CoM in the ee frame)")
+    I = np.zeros((3, 3)) if inertia is None else checks.array("inertia", inertia, (None,) * np.ndim(inertia),
+                                                              "[-1e3, 1e3]", "kg m^2")
     if I.shape == (6,):
         I = inertia_matrix(I)
     if I.shape != (3, 3) or not np.all(np.isfinite(I)) or not np.allclose(I, I.T) or np.linalg.eigvalsh(I).min() < -1e-12:

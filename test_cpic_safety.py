@@ -81,8 +81,9 @@ def test_policies_and_config_reject_bad_values_with_named_value_error(robot):
 
 
 def test_step_returns_a_finite_torque_within_limits_for_any_finite_state(robot):
-    """Random finite states up to |dq| = 1e200, policies that return NaN, inf or 1e200, large compensations and
-    external torques: the command is always finite and within tau_max; broken numbers end in the fallback."""
+    """Random finite states up to |dq| = 1e200, policies that return NaN, inf or 1e200, large compensations (up to
+    what a 50 kg payload can need, config.payload_mass) and external torques: the command is always finite and within
+    tau_max; broken numbers end in the fallback."""
     rng = np.random.default_rng(16)
     p0, R0 = robot.ee_pose(Q_READY)
     policies = [Attractor(p0, R0), Attractor(p0 + np.array([0.3, 0.3, -0.3]), R0),
@@ -92,7 +93,7 @@ def test_step_returns_a_finite_torque_within_limits_for_any_finite_state(robot):
     statuses = []
     for i in range(300):
         k = i % len(policies)
-        ctrl = CPIC(robot, policies[k])
+        ctrl = CPIC(robot, policies[k], CPICConfig(payload_mass=50.0, payload_com=1.0))
         q = rng.uniform(lo - 0.1, hi + 0.1)
         dq = rng.choice([-1.0, 1.0], 7) * 10.0 ** rng.uniform(-3, 1 if i % 3 else 200, 7)
         comp = rng.normal(size=7) * 10.0 ** rng.uniform(-2, 3)

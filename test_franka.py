@@ -163,10 +163,14 @@ def test_cli_refuses_without_package_and_checks_arguments(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "pylibfranka", None)
     assert franka.main(["--robot-ip", "127.0.0.1", "--seconds", "0.1"]) == 2
     assert "not installed" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="--stiffness-scale"):
-        franka.main(["--sim", "--stiffness-scale", "2"])
-    with pytest.raises(ValueError, match="--seconds"):
-        franka.main(["--sim", "--seconds", "-1"])
+    capsys.readouterr()
+    for argv, name in [(["--stiffness-scale", "2"], "--stiffness-scale"), (["--seconds", "-1"], "--seconds"),
+                       (["--seed", "-1"], "--seed"), (["--log", "/no/such/folder/run.npz"], "--log"),
+                       (["--sim-payload", "nan"], "--sim-payload")]:
+        with pytest.raises(SystemExit) as stop:        # refused by the parser, before any work: one line
+            franka.main(["--sim"] + argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.count("\n") == 1 and f"argument {name}: expected" in err, err
 
 
 @pytest.mark.parametrize("worker", ["thread", "process"])

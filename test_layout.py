@@ -11,8 +11,8 @@ PACKAGES = ("diagnosis", "experiments", "motion", "robot")
 
 # Lowest first: a module may import modules of its own layer or below, never above.
 LAYERS = [
-    {"qp", "dynamics"},
-    {"nn_numpy", "vi", "error_model", "detector", "cpic", "sim", "motion", "rme_settings", "rme_levels",
+    {"checks", "qp", "dynamics"},
+    {"nn_numpy", "vi", "error_model", "detector", "ds", "cpic", "sim", "motion", "rme_settings", "rme_levels",
      "rme_stream"},   # the method, the plant
     {"nn_train", "rme"},                                             # the pipeline and the trainer
     {"diagnosis"},                                                   # the diagnosis tool

@@ -99,8 +99,10 @@ def test_rme_returns_the_arm_to_its_pose_and_without_it_the_arm_sags():
 
 def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_says(monkeypatch):
     import vi
-    est = RME(weights=None, settings=RMESettings(asynchronous=False, min_explained=-np.inf, max_com=10.0,
-                                                 monitor=False, hold_axial=0.0))   # no gates: the detector only
+    settings = RMESettings(asynchronous=False, monitor=False, hold_axial=0.0)
+    object.__setattr__(settings, "min_explained", -np.inf)   # no gates (beyond what settings accept): every estimate
+    object.__setattr__(settings, "max_com", 10.0)            #   reaches the clip
+    est = RME(weights=None, settings=settings)
     outputs = iter([np.full(4, np.nan), np.array([3.5, 5.0, -5.0, 5.0])])   # the gate allows 1.2 max_mass
 
     def broken_fit(*args, **kwargs):
@@ -109,9 +111,9 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
         return post
     vi_fit = vi.fit
     monkeypatch.setattr(vi, "fit", broken_fit)
-    from cpic import CPIC, Attractor
+    from cpic import CPIC, Attractor, CPICConfig
     plant = Plant(PlantConfig.ideal())
-    ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)))
+    ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)), CPICConfig(payload_com=1.0))   # as the clip
 
     class Checked:                                     # the runner's estimator, every output checked
         def update(self, q, dq, tau_ext):

@@ -2,9 +2,13 @@
 demo accepts only the flags it uses; `python sim.py DEMO --help` lists them."""
 from __future__ import annotations
 
-import argparse
 import importlib
 import json
+import sys
+
+import checks
+
+SEEDS = "0..4294967295"                                # NumPy's 32-bit seed range (any seed >= 0 works; kept printable)
 
 # name: (help, "module:function", flags). The module is imported only when its demo runs.
 DEMOS = {
@@ -51,21 +55,25 @@ DEMOS = {
 
 FLAGS = {
     "preset": (("--preset",), dict(default="realistic", choices=("ideal", "realistic"), help="plant and sensors")),
-    "seed": (("--seed",), dict(type=int, default=0, help="seed of the np.random.Generator")),
-    "plot": (("--plot",), dict(metavar="FILE", default=None, help="save a figure (needs matplotlib)")),
+    "seed": (("--seed",), dict(type=checks.argument(SEEDS), default=0,
+                               help=f"seed of the np.random.Generator, {SEEDS}")),
+    "plot": (("--plot",), dict(metavar="FILE", type=checks.writable, default=None,
+                               help="save a figure (needs matplotlib; its folder must exist)")),
     "view": (("--view",), dict(action="store_true", help="open MuJoCo's viewer when a display exists")),
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
-    "episodes": (("--episodes",), dict(type=int, default=100, help="episodes of each kind")),
-    "windows": (("--windows",), dict(type=int, default=200, help="simulated windows")),
+    "episodes": (("--episodes",), dict(type=checks.argument("1..100000"), default=100,
+                                       help="episodes of each kind, 1..100000")),
+    "windows": (("--windows",), dict(type=checks.argument("1..1000000"), default=200,
+                                     help="simulated windows, 1..1000000")),
     "dir": (("dir",), dict(metavar="DIR", help="a folder of libfranka-style CSV or franka.py .npz logs")),
     "calibration": (("--calibration",), dict(metavar="FILE", default=None,
                                              help="RME's error model (python rme.py calibrate LOG --save FILE)")),
-    "tools": (("--tools",), dict(type=int, default=5, help="random tools")),
+    "tools": (("--tools",), dict(type=checks.argument("1..1000"), default=5, help="random tools, 1..1000")),
 }
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sim.py", description="MuJoCo Panda demos and benchmarks for Rapid Mismatch "
+def parser() -> checks.Parser:
+    p = checks.Parser(prog="sim.py", description="MuJoCo Panda demos and benchmarks for Rapid Mismatch "
                                 "Estimation. With no DEMO: static.")
     sub = p.add_subparsers(dest="demo", metavar="DEMO")
     for name, (text, _, flags) in DEMOS.items():
@@ -88,7 +96,11 @@ def main(argv=None) -> int:
         except ImportError:                        # one line, no usage: the command itself was right
             p.exit(2, "sim.py: --plot needs matplotlib, which is not installed (pip install matplotlib)\n")
     module, function = DEMOS[args.demo][1].split(":")
-    getattr(importlib.import_module(module), function)(args)
+    try:
+        getattr(importlib.import_module(module), function)(args)
+    except (ValueError, RuntimeError, OSError) as err:   # a failure is one line on stderr, no traceback
+        print(f"sim.py {args.demo}: {type(err).__name__}: {err}", file=sys.stderr)
+        return 1
     return 0
 
 

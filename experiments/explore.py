@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+import checks
 from cpic import Attractor
 from detector import steady_prefix
 
@@ -47,30 +48,21 @@ class ExploreSettings:
     reference_attempts: int = 3    # reference tilts begun, at most (a push or a load change abandons one)
 
     def __post_init__(self):
-        a = np.asarray(self.axis, dtype=float)
-        if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-9 or abs(a[2]) > 1e-9:
-            raise ValueError(f"axis: expected a horizontal world axis (x, y, 0), found {self.axis!r}")
-        checks = [("std_threshold", self.std_threshold > 0, "a std > 0 m"),
-                  ("tilt", 0 < abs(self.tilt) <= math.radians(45), "an angle in (0, 45 deg] (rad)"),
-                  ("speed", 0 < self.speed <= 2.0, "a speed in (0, 2] rad/s"),
-                  ("settle", self.settle >= 0, "a time >= 0 s"), ("rest_before", self.rest_before >= 0, "a time >= 0 s"),
-                  ("window", isinstance(self.window, int) and 20 <= self.window <= 1000, "20..1000 samples"),
-                  ("reference", isinstance(self.reference, int) and 1 <= self.reference <= 2000, "1..2000 samples"),
-                  ("still_speed", self.still_speed > 0, "a speed > 0 rad/s"),
-                  ("push_threshold", self.push_threshold > 0, "a torque > 0 Nm"),
-                  ("reference_tilt", isinstance(self.reference_tilt, bool), "True or False"),
-                  ("reference_tolerance", self.reference_tolerance > 0 and not isinstance(self.reference_tolerance,
-                                                                                           bool), "an angle > 0 rad"),
-                  ("reference_limit", self.reference_limit > 0 and not isinstance(self.reference_limit, bool),
-                   "a torque > 0 Nm"),
-                  ("reference_attempts", isinstance(self.reference_attempts, int) and not isinstance(
-                      self.reference_attempts, bool) and self.reference_attempts >= 1, "an integer >= 1"),
-                  ("pivot", self.pivot in ("wrist", "ee"), "'wrist' or 'ee'"),
-                  ("offset_std", self.offset_std is None or self.offset_std >= 0, "None or a torque >= 0 Nm")]
-        for name, ok, want in checks:
-            value = getattr(self, name)
-            if not ok or (isinstance(value, float) and not np.isfinite(value)):
-                raise ValueError(f"settings.{name}: expected {want}, found {value!r}")
+        """Every field checked (checks.py); finite bounds far beyond use (a 10 s settle, 100 Nm, 1000 attempts)."""
+        a = checks.array("settings.axis", self.axis, (3,), "[-1e3, 1e3]", "(x, y, 0): a horizontal world axis")
+        if np.linalg.norm(a) < 1e-9 or abs(a[2]) > 1e-9:
+            raise ValueError(f"settings.axis: expected a horizontal world axis (x, y, 0), found {self.axis!r}")
+        if not 0 < abs(checks.number("settings.tilt", self.tilt, "[-0.7854, 0.7854]", "rad (45 deg)")):
+            raise ValueError("settings.tilt: expected an angle other than 0 in [-0.7854, 0.7854] rad, found 0")
+        for name, interval in (("std_threshold", "(0, 10]"), ("speed", "(0, 2]"), ("settle", "[0, 10]"),
+                               ("rest_before", "[0, 10]"), ("window", "20..1000"), ("reference", "1..2000"),
+                               ("still_speed", "(0, 10]"), ("push_threshold", "(0, 100]"),
+                               ("reference_tolerance", "(0, 3.1416]"), ("reference_limit", "(0, 100]"),
+                               ("reference_attempts", "1..1000")):
+            checks.number(f"settings.{name}", getattr(self, name), interval)
+        checks.flag("settings.reference_tilt", self.reference_tilt)
+        checks.choice("settings.pivot", self.pivot, ("wrist", "ee"))
+        None if self.offset_std is None else checks.number("settings.offset_std", self.offset_std, "[0, 10]", "Nm")
 
     def profile(self, t):
         """Angle (rad) of the target along the tilt t [s] after it starts moving: a/2 (1 - cos(pi t / T)),

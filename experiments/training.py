@@ -3,12 +3,14 @@ random payloads, three referred windows per episode; `python nn_numpy.py train` 
 `python nn_numpy.py bench` times the network and scores it on fresh episodes."""
 from __future__ import annotations
 
-import argparse
+import os
+import sys
 import time
 from dataclasses import asdict, replace
 
 import numpy as np
 
+import checks
 from cpic import JointHold
 from dynamics import Q_READY, Robot
 from experiments.episodes import measure
@@ -118,16 +120,27 @@ def benchmark(path=WEIGHTS, repeats=2000, held_out_episodes=40):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="nn_numpy.py", description=__doc__)
+    ap = checks.Parser(prog="nn_numpy.py", description=__doc__)
     ap.add_argument("command", choices=["train", "bench"])
-    ap.add_argument("--episodes", type=int, default=TrainConfig.episodes)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=WEIGHTS)
+    ap.add_argument("--episodes", type=checks.argument("1..100000"), default=TrainConfig.episodes,
+                    help="train: simulated episodes, 1..100000")
+    ap.add_argument("--seed", type=checks.argument("0..4294967295"), default=0, help="train: the seed of the data's "
+                    "and the training's np.random.Generator, 0..4294967295")
+    ap.add_argument("--out", default=WEIGHTS, help="train: the weights file to write (its folder must exist); "
+                    "bench: the weights file to time")
     a = ap.parse_args(argv)
-    if a.command == "train":
-        train_from_scratch(a.episodes, a.seed, a.out, log=lambda s: print(s, flush=True))
-    else:
-        print_benchmark(benchmark(a.out), a.out)
+    if a.command == "train" and not os.path.isdir(os.path.dirname(os.path.abspath(a.out))):
+        ap.error(f"--out: expected a file in an existing folder, found {a.out!r}")
+    if a.command == "bench" and not os.path.isfile(a.out):
+        ap.error(f"--out: expected a weights file to read, found no file at {a.out!r}")
+    try:
+        if a.command == "train":
+            train_from_scratch(a.episodes, a.seed, a.out, log=lambda s: print(s, flush=True))
+        else:
+            print_benchmark(benchmark(a.out), a.out)
+    except (ValueError, OSError) as err:            # a failure is one line on stderr, no traceback
+        print(f"nn_numpy.py {a.command}: {type(err).__name__}: {err}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import checks
 from dynamics import phi_of, skew
 from motion.inertia import FitInfo, FitSettings, fit_normal, fit_steps, inertia_of, rigid_body, savgol
 
@@ -43,17 +44,22 @@ class InertiaSettings:
     fit: FitSettings = field(default_factory=FitSettings)
 
     def __post_init__(self):
-        checks = [("rate", self.rate > 0, "a rate > 0 Hz"),
-                  ("filter_window", self.filter_window % 2 == 1 and self.filter_window >= self.filter_order + 3,
-                   f"an odd number of samples >= {self.filter_order + 3}"),
-                  ("every", self.every >= 1, "an integer >= 1"),
-                  ("window", 20 <= self.window <= self.max_rows, f"20..{self.max_rows} rows (max_rows)"),
-                  ("max_torque", 0 < self.max_torque < np.inf, "a finite torque > 0 Nm"),
-                  ("max_distance", self.max_distance > 0, "a distance > 0 Nm"),
-                  ("settle", self.settle >= 0 and self.jolt > 0, "settle >= 0 s and jolt > 0 Nm")]
-        for name, ok, want in checks:
-            if not ok:
-                raise ValueError(f"settings.{name}: expected {want}, found {getattr(self, name)!r}")
+        """Every field checked (checks.py), with finite bounds far beyond use (a kHz loop, 1e3 Nm, 1e6 rows)."""
+        number = checks.number
+        number("settings.rate", self.rate, "[10, 1e4]", "Hz")
+        number("settings.filter_order", self.filter_order, "0..10")
+        if number("settings.filter_window", self.filter_window, f"{self.filter_order + 3}..1001", "samples") % 2 == 0:
+            raise ValueError(f"settings.filter_window: expected an odd number of samples, found {self.filter_window}")
+        for name, interval in (("every", "1..1000"), ("min_speed", "[0, 10]"), ("max_rows", "20..1000000"),
+                               ("window", f"20..{self.max_rows}"), ("reference_rows", "1..1000000"),
+                               ("min_reference", f"0..{self.reference_rows}"), ("max_distance", "(0, 1e3]"),
+                               ("unloaded_mass", "[0, 50]"), ("max_torque", "(0, 1e3]"),
+                               ("max_relative_std", "(0, 10]"), ("max_acceleration", "(0, 1e3]"), ("jolt", "(0, 1e3]"),
+                               ("settle", "[0, 60]")):
+            number(f"settings.{name}", getattr(self, name), interval)
+        checks.array("settings.scale", self.scale, (3,), "(0, 1e3]", "(Nm per rad, rad/s, rad/s^2)")
+        None if self.observer_gain is None else number("settings.observer_gain", self.observer_gain, "(0, 1e4]", "1/s")
+        checks.instance("settings.fit", self.fit, FitSettings)
 
 
 def _cross(a, b):
@@ -97,13 +103,10 @@ class InertialCompensation:
     done()), the refit runs there and is polled, never waited on. fits: [(t, pi, FitInfo)], t when applied."""
 
     def __init__(self, rme, settings: InertiaSettings = InertiaSettings(), executor=None):
-        if not isinstance(settings, InertiaSettings):
-            raise ValueError(f"settings: expected an InertiaSettings, found {type(settings).__name__}")
-        if not hasattr(rme, "update") or not hasattr(rme, "robot"):
+        checks.instance("settings", settings, InertiaSettings), checks.has_methods("rme", rme, "update")
+        None if executor is None else checks.has_methods("executor", executor, "submit")
+        if not hasattr(rme, "robot"):
             raise ValueError(f"rme: expected an RME (update, robot, theta), found {type(rme).__name__}")
-        if executor is not None and not hasattr(executor, "submit"):
-            raise ValueError(f"executor: expected None or an object with submit(fn, *args), found "
-                             f"{type(executor).__name__}")
         self.rme, self.settings, self.executor, s = rme, settings, executor, settings
         self.robot, n, W = rme.robot, rme.robot.n, settings.filter_window
         dt = 1.0 / s.rate

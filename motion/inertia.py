@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_coeffs
 
+import checks
+
 _I_INDEX = np.array([[4, 5, 7], [5, 6, 8], [7, 8, 9]])     # pi index of I[i, j]; pi = (m, h, Ixx, Ixy, Iyy, Ixz, Iyz, Izz)
 
 
@@ -70,6 +72,12 @@ class FitSettings:
     max_steps: int = 100                             # Newton steps of the projection at most (it takes 20-40)
     offsets: bool = True                             # each joint's unknown offset b partialled out (False: b = 0,
                                                      #   the torques already referred to a reference)
+
+    def __post_init__(self):                         # finite bounds far beyond use (checks.py)
+        checks.array("prior_std", self.prior_std, (4,), "(0, 1e3]", "kg, kg m")
+        for name, interval in (("inertia_std", "(0, 1e3]"), ("min_noise", "(0, 1e3]"), ("tolerance", "[0, 1]"),
+                               ("gap", "(0, 1]"), ("max_steps", "1..10000")):
+            checks.number(name, getattr(self, name), interval)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+import checks
 from dynamics import PANDA_XML
 from nn_numpy import WEIGHTS
 from rme import Estimate, RMESettings
@@ -44,12 +45,12 @@ class EstimatorSpec:
     def __post_init__(self):
         for name in ("xml_path", "weights", "correction", "calibration", "tool"):
             path = getattr(self, name)
-            if path is not None and not os.path.isfile(path):
+            if path is not None and not (isinstance(path, (str, os.PathLike)) and os.path.isfile(path)):
                 raise ValueError(f"{name}: expected a file, found no file at {path!r}")
-        if not isinstance(self.settings, RMESettings):
-            raise ValueError(f"settings: expected an RMESettings, found {type(self.settings).__name__}")
-        if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise ValueError(f"seed: expected an integer >= 0, found {self.seed!r}")
+        checks.instance("settings", self.settings, RMESettings)
+        checks.number("seed", self.seed, "0..18446744073709551615")          # (any 64-bit seed)
+        if not isinstance(self.ee, str):
+            raise ValueError(f"ee: expected the name of a site (text), found {self.ee!r}")
 
     def build(self, executor=None):
         """The RME this spec describes (executor: where its streamed estimates run; None: within update)."""
