@@ -104,11 +104,9 @@ class Posterior:
 
 # --- input checks ------------------------------------------------------------------------------------
 def _array(name, x, shape_text, ndim):
-    try:
-        a = np.asarray(x, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a numeric array of shape {shape_text}, "
-                         f"found {type(x).__name__}") from None
+    if (a := checks.real_array(x)) is None:                  # bool, complex, text: refused, not cast
+        raise ValueError(f"{name}: expected a real array of shape {shape_text}, found {checks.kind(x)}")
+    a = a.astype(float)
     if a.ndim != ndim:
         raise ValueError(f"{name}: expected shape {shape_text}, found {a.shape}")
     if not np.all(np.isfinite(a)):

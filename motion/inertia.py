@@ -78,6 +78,7 @@ class FitSettings:
         for name, interval in (("inertia_std", "(0, 1e3]"), ("min_noise", "(0, 1e3]"), ("tolerance", "[0, 1]"),
                                ("gap", "(0, 1]"), ("max_steps", "1..10000")):
             checks.number(name, getattr(self, name), interval)
+        checks.flag("offsets", self.offsets)
 
 
 @dataclass
