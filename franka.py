@@ -324,7 +324,7 @@ def make_backend(args, rng: np.random.Generator):
 
 
 def main(argv=None) -> int:
-    ap = checks.Parser(prog="franka.py", description=__doc__.splitlines()[0])
+    ap = checks.Parser(prog="franka.py", description=__doc__)
     ap.add_argument("--robot-ip", help="the robot's FCI address (not needed with --sim)")
     ap.add_argument("--lib", choices=LIBS, default="pylibfranka")
     ap.add_argument("--task", choices=TASKS, default="hold")
@@ -336,7 +336,8 @@ def main(argv=None) -> int:
     ap.add_argument("--dry-run", action="store_true", help="read states, print what would be commanded, command nothing")
     ap.add_argument("--sim", action="store_true", help="the project's MuJoCo plant instead of a robot")
     ap.add_argument("--sim-payload", type=checks.argument("[0, 3]", "kg"), default=0.0,
-                    help="kg in [0, 3] added at half time with --sim (CoM: SIM_COM)")
+                    help=f"with --sim: kg in [0, 3] added at half time, its CoM at {SIM_COM} m in the ee frame "
+                         "(off the flange's axis)")
     ap.add_argument("--stiffness-scale", type=checks.argument("(0, 1]"), default=1.0,
                     help="DS gains and posture spring x S, (0, 1]")
     ap.add_argument("--no-realtime", action="store_true", help="pylibfranka RealtimeConfig.kIgnore (no RT kernel)")
