@@ -9,6 +9,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+import checks
+
 N = 7
 
 # An uncalibrated Panda at rest: tau_ext is not zero with nothing attached, "a pose-dependent offset of a few tenths
@@ -34,15 +36,14 @@ class ErrorModel:
     correlation: tuple | None = None   # (n, n) of the absolute error across joints (None: independent joints)
 
     def __post_init__(self):
+        n = None
         for name in ("absolute", "referred", "offset"):
             v = getattr(self, name)
-            try:
-                a = np.asarray(v, dtype=float)
-            except (TypeError, ValueError):
-                raise ValueError(f"error_model.{name}: expected one number per joint [Nm], found {v!r}") from None
-            if np.iscomplexobj(v) or a.ndim != 1 or a.shape != np.shape(self.absolute) or a.size < 1 or not np.all(np.isfinite(a)):
-                raise ValueError(f"error_model.{name}: expected {np.size(self.absolute)} finite numbers [Nm] (one per "
-                                 f"joint, as absolute), found {v!r}")
+            a = checks.real_array(v)                          # bool, complex, text refused, not cast
+            if a is None or a.ndim != 1 or a.size < 1 or (n is not None and a.size != n) or not np.all(np.isfinite(a)):
+                want = "one finite number per joint" if n is None else f"{n} finite numbers (one per joint, as absolute)"
+                raise ValueError(f"error_model.{name}: expected {want} [Nm], found {v!r:.80}")
+            n = a.size
             if name != "offset" and not np.all((a > 0) & (a <= 20.0)):
                 raise ValueError(f"error_model.{name}: expected stds in (0, 20] Nm (a torque sensor's error, not a "
                                  f"load), found {a.tolist()}")
@@ -50,16 +51,11 @@ class ErrorModel:
                 raise ValueError(f"error_model.offset: expected offsets within 20 Nm, found {a.tolist()}")
             object.__setattr__(self, name, tuple(float(x) for x in a))
         if self.correlation is not None:
-            try:
-                R = np.asarray(self.correlation, dtype=float)
-            except (TypeError, ValueError):
-                raise ValueError(f"error_model.correlation: expected an (n, n) matrix, found {self.correlation!r}") \
-                    from None
-            k = len(self.absolute)
-            if np.iscomplexobj(self.correlation) or R.shape != (k, k) or not np.all(np.isfinite(R)) or \
-                    not np.allclose(R, R.T) or not np.allclose(np.diag(R), 1.0) or np.linalg.eigvalsh(R)[0] <= 1e-9:
-                raise ValueError(f"error_model.correlation: expected a ({k}, {k}) positive definite correlation "
-                                 f"matrix (symmetric, unit diagonal), found {R.tolist()}")
+            R = checks.real_array(self.correlation)
+            if R is None or R.shape != (n, n) or not np.all(np.isfinite(R)) or not np.allclose(R, R.T) or \
+                    not np.allclose(np.diag(R), 1.0) or np.linalg.eigvalsh(R)[0] <= 1e-9:
+                raise ValueError(f"error_model.correlation: expected a ({n}, {n}) positive definite correlation "
+                                 f"matrix (symmetric, unit diagonal), found {self.correlation!r:.80}")
             object.__setattr__(self, "correlation", tuple(tuple(float(x) for x in row) for row in R))
         if not isinstance(self.source, str):
             raise ValueError(f"error_model.source: expected a string, found {self.source!r}")

@@ -43,7 +43,7 @@ class RME(Streaming):
         self.robot = Robot.panda() if robot is None else checks.instance("robot", robot, Robot)
         self.error_model = as_error_model(calibration, self.robot.n)
         if len(self.error_model.absolute) != self.robot.n:
-            raise ValueError(f"calibration: expected an error model of {self.robot.n} joints, found "
+            raise ValueError(f"calibration: expected an error model of the robot's {self.robot.n} joints, found one of "
                              f"{len(self.error_model.absolute)} ({self.error_model.source})")
         self.tool = None if tool is None else load_tool(tool)        # ValueError naming what is wrong
         self._tool_phi = np.zeros(4) if tool is None else phi_of_tool(self.tool)   # (m, m c) in the ee frame
@@ -78,9 +78,9 @@ class RME(Streaming):
                                                        #   the arm has been still, slower than monitor_speed, than
                                                        #   monitor_slow[0]
         self.history: list[Estimate] = []
-        c, m = settings.max_com, settings.max_mass                  # every plausible payload: a broad prior, 2 sigma
-        self._broad = (np.array([m / 2, 0, 0, 0]), np.array([m / 2, c / 2, c / 2, c / 2]),   # to the box's edge,
-                       np.array([0.0, -c, -c, -c]), np.array([m, c, c, c]))                 # and the box
+        c, m = settings.max_com, settings.max_mass                  # every plausible payload: a weak prior (1 sigma
+        self._broad = (np.array([m / 2, 0, 0, 0]), np.array([m / 2, c, c, c]),   # to the box's edge) truncated to
+                       np.array([0.0, -c, -c, -c]), np.array([m, c, c, c]))     # the box (vi.log_evidence)
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
     @property
@@ -113,6 +113,9 @@ class RME(Streaming):
         level before the change (you subtracted it); False: absolute even with a baseline."""
         if referred is not None and not isinstance(referred, (bool, np.bool_)):
             raise ValueError(f"referred: expected True, False or None, found {referred!r}")
+        if referred is False and baseline is not None:
+            raise ValueError("referred: expected True or None with a baseline (a window less the level before a "
+                             "change is referred), found False")
         ref = lambda b: bool(b is not None if referred is None else referred)
         if not isinstance(q, (list, tuple)):
             return self._estimate(*self._window(q, tau_ext, baseline, dq, ref(baseline)), referred=ref(baseline))[0]
@@ -178,12 +181,12 @@ class RME(Streaming):
         if np.all(referred):
             sp = None if self.net is None else self.net.prior_std(prior, s.vi.sigma_prior, R[-1])
             post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias,
-                          sigma_prior=sp, alternative=self._broad)
+                          sigma_prior=sp, alternative=None if self.net is None else self._broad)
         else:
             prior, sp = self._broad[:2]
             post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias, sigma_prior=sp)
             post.prior = "broad"
-        e = Estimate(post.mean, post.marginal_std, post.cov, np.asarray(prior, float), post.observed,
+        e = Estimate(post.mean, post.marginal_std, post.cov, post.prior_mean, post.observed,
                      time.perf_counter() - start, post.iterations, post.converged)
         e.prior_source = post.prior
         return e, np.vstack([

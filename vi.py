@@ -7,6 +7,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import special
 
 import checks
 from dynamics import phi_of, theta_of   # noqa: F401  (vi.phi_of, vi.theta_of: the estimate's parameters)
@@ -46,7 +47,7 @@ class VISettings:
     keep_history: bool = False         # record mu, sigma and the -ELBO estimate at every iteration
     conflict: float = 5.0              # ln Bayes factor of a broad prior over the network's beyond which the window
                                        #   conflicts with the network (fit's alternative): "very strong" evidence,
-                                       #   2 ln B > 10 (Kass and Raftery 1995); simulated windows stay below 6.2
+                                       #   2 ln B > 10 (Kass and Raftery 1995)
 
     def __post_init__(self):
         """Upper bounds keep the solver finite, far beyond any use: lr 1 (a step of the prior's width), 10 Nm of noise
@@ -98,6 +99,7 @@ class Posterior:
     observed: np.ndarray     # (4,) bool: marginal_std < observed_ratio x the prior's std (the data informed it)
     history: np.ndarray | None = field(default=None, repr=False)   # (iterations, 9): mu, sigma, -ELBO
     prior: str = "network"   # the prior q started from: "network", or "broad" where the window conflicts with it
+    prior_mean: np.ndarray | None = None   # (4,) that prior's mean
 
     marginal_std = property(lambda self: np.sqrt(np.diag(self.cov)), doc="(4,) sqrt(diag(cov))")
 
@@ -195,8 +197,15 @@ def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None, bias_s
     if speed is not None and ((speed := _array("speed", speed, f"({n},)", 1)).shape != (n,) or np.any(speed < 0)):
         raise ValueError(f"speed: expected shape ({n},) with values >= 0, found {speed}")
     C = None
-    if bias_std is not None and np.ndim(bias_std) == 2:               # a shared constant: the diagonal part is 0
-        C, bias_std = np.asarray(bias_std, dtype=float), np.zeros(n)
+    if bias_std is not None:
+        b_in, bias_std = bias_std, _array("bias_std", bias_std, f"({n},) or ({n}, {n})", np.ndim(bias_std))
+        if bias_std.shape not in ((n,), (n, n)) or np.any(np.diag(np.atleast_2d(bias_std)) < 0) or (
+                bias_std.ndim == 2 and (not np.allclose(bias_std, bias_std.T)
+                                        or np.linalg.eigvalsh(bias_std)[0] <= 0)):
+            raise ValueError(f"bias_std: expected ({n},) stds >= 0 or an ({n}, {n}) positive definite covariance, "
+                             f"found {np.shape(b_in)} {np.asarray(b_in).ravel()[:4]}")
+    if bias_std is not None and bias_std.ndim == 2:                 # a shared constant: the diagonal part is 0
+        C, bias_std = bias_std, np.zeros(n)
     if noise_std is None:
         s, D = noise_from_window(Y, tau, settings, speed, bias_std)
     else:
@@ -360,12 +369,13 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
     sp = np.asarray(settings.sigma_prior if sigma_prior is None else sigma_prior, dtype=float)
     if sp.shape != (4,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
         raise ValueError(f"sigma_prior: expected 4 finite values > 0, found {sigma_prior}")
-    source = "network"
-    if alternative is not None and prior_conflict(window, (mu_prior, sp), alternative, settings.map_steps) > \
-            settings.conflict:
+    source, steps = "network", settings.map_steps
+    start = map_estimate(window, mu_prior, sp, steps) if settings.warm_start or alternative is not None else None
+    if alternative is not None and prior_conflict(window, (mu_prior, sp), alternative, steps, start) > settings.conflict:
         (mu_prior, sp), source = (np.asarray(a, dtype=float) for a in alternative[:2]), "broad"
+        start = map_estimate(window, mu_prior, sp, steps) if settings.warm_start else None
     if settings.warm_start:
-        mu0, H = map_estimate(window, mu_prior, sp, settings.map_steps)
+        mu0, H = start
         sigma0 = 1.0 / np.sqrt(np.diag(H))
         C = np.linalg.cholesky(np.linalg.inv(H))                     # C C^T = H^-1, C[0, 1:] = 0
     else:
@@ -377,28 +387,42 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
     value = neg_elbo_grad(mean, np.log(std), window, mu_prior, sp, eps)[0]
     return Posterior(mean, std, cov, it, time.perf_counter() - t0, converged, "converged" if converged else
                      "max_iterations", value, window.noise_std, np.sqrt(np.diag(cov)) < settings.observed_ratio * sp,
-                     history, source)
+                     history, source, mu_prior.copy())
 
 
-def log_evidence(window, mu_prior, sigma_prior, steps=20, box=None):
+def log_evidence(window, mu_prior, sigma_prior, steps=20, box=None, start=None):
     """Laplace approximation of log p(D) under the prior N(mu_prior, diag(sigma_prior^2)), up to a constant the
-    same for every prior: -E(theta*) - sum log sp - 1/2 log det H at the MAP theta* (map_estimate, gauss_newton).
-    box (lo (4,), hi (4,)): the prior's support; -inf when the MAP lies outside it (no payload there explains D)."""
-    theta, H = map_estimate(window, mu_prior, sigma_prior, steps)
-    if box is not None and not np.all((box[0] <= theta) & (theta <= box[1])):
-        return -np.inf
+    same for every prior: -E(theta*) - sum log sp - 1/2 log det H at the MAP theta* (map_estimate, gauss_newton;
+    start: its (theta*, H) when known). box (lo (4,), hi (4,)): the prior truncated to the box (every plausible
+    payload) adds log P_post(box) - log P_prior(box), the masses inside of the Laplace posterior N(theta*, H^-1) and
+    of the prior, each the product of its marginals' (a box the data put the payload far outside of gets none)."""
+    theta, H = map_estimate(window, mu_prior, sigma_prior, steps) if start is None else start
     E = gauss_newton(theta, window, mu_prior, sigma_prior)[0]
-    return float(-E - np.sum(np.log(sigma_prior)) - 0.5 * np.linalg.slogdet(H)[1])
+    value = float(-E - np.sum(np.log(sigma_prior)) - 0.5 * np.linalg.slogdet(H)[1])
+    if box is not None:
+        post_std = np.sqrt(np.diag(np.linalg.inv(H)))
+        value += _log_mass(theta, post_std, *box) - _log_mass(np.asarray(mu_prior), np.asarray(sigma_prior), *box)
+    return value
 
 
-def prior_conflict(window, prior, alternative, steps=20):
+def _log_mass(mean, std, lo, hi):
+    """sum_i log P(lo_i <= x_i <= hi_i) for x_i ~ N(mean_i, std_i^2), in the tail that keeps it finite."""
+    a, b = (lo - mean) / std, (hi - mean) / std
+    flip = a > 0                                                      # both bounds above the mean: mirror
+    a, b = np.where(flip, -b, a), np.where(flip, -a, b)
+    la, lb = special.log_ndtr(a), special.log_ndtr(b)                 # log Phi(a) < log Phi(b)
+    return float(np.sum(lb + np.log1p(-np.exp(np.minimum(la - lb, 0.0)) + 1e-300)))
+
+
+def prior_conflict(window, prior, alternative, steps=20, start=None):
     """log p(D | alternative) - log p(D | prior) (Laplace, log_evidence): prior (mean (4,), std (4,)), alternative
-    (mean, std, lo, hi) a broad prior over every plausible payload, lo <= theta <= hi. > 0 when the window is better
-    explained by a plausible payload the network's narrow prior does not expect (one outside its training range, a
-    robot unlike the one it was trained on); -inf when the broad prior's best payload is not plausible (a window no
-    payload explains: a push, a transient). fit takes the broad prior beyond VISettings.conflict."""
+    (mean, std, lo, hi) a broad prior over every plausible payload lo <= theta <= hi (a truncated Gaussian); start:
+    the narrow prior's (theta*, H) when known. > 0 when the window is better explained by a plausible payload that
+    the narrow prior does not expect (one outside the network's training range, a robot unlike the one it was
+    trained on); very negative when no plausible payload explains it (a push, a transient). fit takes the broad prior
+    beyond VISettings.conflict."""
     mean, std, lo, hi = alternative
-    return log_evidence(window, mean, std, steps, (lo, hi)) - log_evidence(window, *prior, steps)
+    return log_evidence(window, mean, std, steps, (lo, hi)) - log_evidence(window, *prior, steps, start=start)
 
 
 def _draws(rng, chunk, samples, antithetic):

@@ -3,14 +3,13 @@ per joint, in an absolute window and in one referred to the level before. `pytho
 [--load none|fit] --save robot.json [--json]`."""
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import sys
 from dataclasses import dataclass
 
 import numpy as np
 
+import checks
 from dynamics import Robot, theta_of
 from error_model import ErrorModel
 from diagnosis.logs import load_log
@@ -51,13 +50,18 @@ class RestData:
     rows: np.ndarray
     logs: list
 
-    def poses(self, tol=RestConfig.pose) -> int:
-        """How many distinct poses the windows hold (greedy clusters within tol rad on every joint)."""
-        centres = []
+    def pose_labels(self, tol=RestConfig.pose) -> np.ndarray:
+        """(W,) the pose of each window: greedy clusters within tol rad on every joint, numbered from 0."""
+        centres, labels = [], []
         for q in self.q:
-            if not any(np.abs(q - c).max() < tol for c in centres):
-                centres.append(q)
-        return len(centres)
+            k = next((i for i, c in enumerate(centres) if np.abs(q - c).max() < tol), len(centres))
+            centres += [q] if k == len(centres) else []
+            labels.append(k)
+        return np.array(labels, dtype=int)
+
+    def poses(self, tol=RestConfig.pose) -> int:
+        """How many distinct poses the windows hold (pose_labels)."""
+        return int(self.pose_labels(tol).max()) + 1 if len(self.q) else 0
 
 
 def rest_data(logs, robot: Robot, config: RestConfig = RestConfig()) -> RestData:
@@ -97,7 +101,7 @@ def payload_and_offset(data: RestData, config: RestConfig = RestConfig()) -> tup
     res = data.tau.reshape(-1) - D @ x
     var = res @ res / max(W * n - 4 - n, 1) * W / data.poses(config.pose)
     std = float(np.sqrt(max(np.linalg.pinv(G)[0, 0] * var, 0.0)))
-    if std > config.separable * abs(x[0]):
+    if std > config.separable * max(abs(x[0]), 0.1):                 # (a light load: judged as 0.1 kg)
         return pooled_payload(data, config.ridge), False, std
     return x[:4], True, std
 
@@ -106,8 +110,9 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     """The error model of the robot in `data` (RestData) and a report. load "none": nothing was attached (phi = 0);
     "fit": one unchanged load, fitted with the model (pooled_payload): the part of the robot's error that looks
     like a payload is then taken into the load, and cannot be calibrated. Per joint, with r_w = tau_w - Y_w phi:
-    offset = mean r_w; absolute = their RMS about it over the P poses, times sqrt(n P / (n P - k)) for the k values
-    fitted (n offsets, and 4 with a load); referred = RMS of r_w - r_before over the pairs of consecutive windows of
+    r_p its mean over the windows of pose p (each pose counts once); offset = mean r_p; absolute = the RMS of r_p
+    about it over the P poses, times sqrt(n P / (n P - k)) for the k values fitted (n offsets, 4 more with a load);
+    correlation: that of r_p across joints, shrunk to independence by n / (n + P); referred = RMS of r_w - r_before over the pairs of consecutive windows of
     one rest run (what a window referred to the level just before it still holds: drift, a load's vibration)."""
     if load not in ("none", "fit"):
         raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
@@ -119,8 +124,10 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                          f"found {W} windows at {P} pose(s)")
     phi, joint, mass_std = payload_and_offset(data) if load == "fit" else (np.zeros(4), True, 0.0)
     r = data.tau - data.Y @ phi                                   # (W, n)
-    offset = r.mean(axis=0)
-    absolute = np.sqrt(np.mean((r - offset) ** 2, axis=0) * n * P / (n * P - k))
+    labels = data.pose_labels()
+    rp = np.array([r[labels == i].mean(axis=0) for i in range(P)])   # (P, n): each pose once, however long it rested
+    offset = rp.mean(axis=0)
+    absolute = np.sqrt(np.mean((rp - offset) ** 2, axis=0) * n * P / (n * P - k)) if P > 1 else np.zeros(n)
     pairs = data.before >= 0
     referred = np.sqrt(np.mean((r[pairs] - r[data.before[pairs]]) ** 2, axis=0)) if pairs.any() else None
     notes = []
@@ -135,8 +142,9 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
         notes.append(f"only {P} pose(s): the absolute error's spread over poses is barely measured")
     floor = 0.001                                               # Nm: below the sensor's 0.005 Nm quiescent noise
     absolute = np.maximum(absolute, floor)
-    corr = np.corrcoef((r - offset).T) if W > 2 else np.eye(n)   # the error's correlation across joints, shrunk to
-    lam = n / (n + P)                                            # the identity as few poses back it (n / (n + P))
+    corr = np.corrcoef(rp.T) if P > 2 else np.eye(n)            # the error's correlation across joints over the
+    lam = n / (n + P)                                            # poses, shrunk to the identity as few poses back it
+                                                                 # (ours: n / (n + P), half at P = n)
     corr = (1 - lam) * np.nan_to_num(corr) + lam * np.eye(n)
     np.fill_diagonal(corr, 1.0)
     model = ErrorModel(tuple(absolute), tuple(np.maximum(referred, floor)), tuple(offset),
@@ -166,17 +174,17 @@ def format_report(rep: dict) -> str:
 
 
 def main(argv=None, prog: str = "rme.py calibrate") -> int:
-    p = argparse.ArgumentParser(prog=prog, description="Calibrate RME's error model from rest windows of your "
-                                "robot's logs (libfranka-style CSV or franka.py .npz).")
+    p = checks.Parser(prog=prog, description="Calibrate RME's error model from rest windows of your robot's logs "
+                      "(libfranka-style CSV or franka.py .npz).")
     p.add_argument("logs", nargs="+", metavar="LOG")
     p.add_argument("--load", choices=("none", "fit"), default="none",
                    help="none: nothing attached; fit: one unchanged load, fitted with the model")
     p.add_argument("--save", metavar="FILE", help="write the model as JSON (RME(calibration=FILE))")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     args = p.parse_args(argv)
-    if args.save and not os.path.isdir(os.path.dirname(os.path.abspath(args.save))):
-        p.error(f"--save: no folder {os.path.dirname(os.path.abspath(args.save))!r}")
     try:
+        if args.save:
+            checks.output_file("--save", args.save)            # before any work
         robot = Robot.panda()
         data = rest_data([load_log(x) for x in args.logs], robot)
         model, rep = calibrate(data, args.load)
@@ -184,7 +192,11 @@ def main(argv=None, prog: str = "rme.py calibrate") -> int:
         print(f"{prog}: {err}", file=sys.stderr)
         return 2
     if args.save:
-        model.save(args.save)
+        try:
+            model.save(args.save)
+        except OSError as err:
+            print(f"{prog}: --save: could not write {args.save!r}: {err}", file=sys.stderr)
+            return 2
         rep["saved"] = args.save
     print(json.dumps(rep) if args.json else format_report(rep) + (f"\nsaved to {args.save}" if args.save else ""))
     return 0

@@ -12,6 +12,7 @@ import numpy as np
 from diagnosis.calibrate import RestConfig, pooled_payload, rest_data
 from diagnosis.logs import load_log
 from dynamics import theta_of
+from error_model import as_error_model
 from experiments.baselines import methods
 from rme import RME
 
@@ -79,7 +80,8 @@ def print_real_logs(res):
 
 def main(args):
     if not os.path.isdir(args.dir):
-        raise SystemExit(f"sim.py real-logs: no folder {args.dir!r}")
+        raise ValueError(f"DIR: expected a folder of logs, found no folder at {args.dir!r}")
+    as_error_model(args.calibration)                     # a calibration that cannot be read: before the logs
     paths = sorted(glob.glob(os.path.join(args.dir, "*.csv")) + glob.glob(os.path.join(args.dir, "*.npz")))
     res = real_logs(paths, calibration=args.calibration)
     print(json.dumps(res)) if args.json else print_real_logs(res)
