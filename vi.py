@@ -395,8 +395,11 @@ def log_evidence(window, mu_prior, sigma_prior, steps=20, box=None, start=None):
     same for every prior: -E(theta*) - sum log sp - 1/2 log det H at the MAP theta* (map_estimate, gauss_newton;
     start: its (theta*, H) when known). box (lo (4,), hi (4,)): the prior truncated to the box (every plausible
     payload) adds log P_post(box) - log P_prior(box), the masses inside of the Laplace posterior N(theta*, H^-1) and
-    of the prior, each the product of its marginals' (a box the data put the payload far outside of gets none)."""
+    of the prior, each the product of its marginals'; -inf when the MAP itself lies outside the box (the Laplace
+    approximation, centred there, would credit the box with mass the fit never visits: a transient, a push)."""
     theta, H = map_estimate(window, mu_prior, sigma_prior, steps) if start is None else start
+    if box is not None and not np.all((box[0] <= theta) & (theta <= box[1])):
+        return -np.inf                          # its best payload is implausible: no payload in the box explains D
     E = gauss_newton(theta, window, mu_prior, sigma_prior)[0]
     value = float(-E - np.sum(np.log(sigma_prior)) - 0.5 * np.linalg.slogdet(H)[1])
     if box is not None:
