@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import franka
+import robot.loop as loop
 from diagnosis.logs import load_log, read_npz
 from dynamics import Robot
 from rme import RME, RMESettings
@@ -310,7 +311,7 @@ def test_the_warm_up_before_the_loop_changes_nothing_it_commands(monkeypatch):
     commands of a seeded run with a load are bit for bit those of the same run without it."""
     def hold(warm):
         if not warm:
-            monkeypatch.setattr(franka, "_warm_up", lambda *args: None)
+            monkeypatch.setattr(loop, "_warm_up", lambda *args: None)
         q0 = franka.Q_START + np.array([0.2, -0.1, 0.1, 0.15, 0.0, -0.1, 0.3])   # not the warm-up's pose
         backend = franka.SimBackend(np.random.default_rng(5), q0=q0, payload=[(0.3, 1.0, R_ADD)])
         ctrl = franka.make_controller(ROBOT, backend.initial.q, "hold")
