@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))       # the repository
 PACKAGES = ("diagnosis", "experiments", "motion", "robot")
 
 # Lowest first: a module may import modules of its own layer or below, never above.

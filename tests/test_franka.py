@@ -15,6 +15,7 @@ import robot.loop as loop
 from diagnosis.logs import load_log, read_npz
 from dynamics import Robot
 from rme import RME, RMESettings
+from tests.helpers import ROOT
 
 ROBOT = Robot.panda()
 LIMIT = ROBOT.torque_limits()
@@ -356,7 +357,7 @@ def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, 
     out = json.loads(capsys.readouterr().out)
     import subprocess                                   # the same run's log through rme.py identify, no reference
     res = subprocess.run([sys.executable, "rme.py", "identify", str(log), "--json"], capture_output=True, text=True,
-                         cwd=os.path.dirname(os.path.abspath(__file__)), timeout=120)
+                         cwd=ROOT, timeout=120)
     from_log = json.loads(res.stdout)
     assert res.returncode == 0 and set(from_log) >= {"mass", "com", "inertia", "desk", "libfranka_set_load"}
     assert any("no reference motion" in n for n in from_log["fit"]["notes"])
