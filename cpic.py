@@ -121,9 +121,9 @@ class CPIC:
     Posture spring (ours): tau_p = -k_p N_rest (q - q_rest) = -dP/dq, P = k_p/2 (q - q_rest)^T N_rest (q - q_rest) with
     N_rest = N(q_rest) fixed: a gradient, so S = 1/2 dq^T M dq + lambda_1 V + P never increases (storage()); at q_rest
     it acts in the null space only, and P = 0 on a hyperplane through q_rest that the self-motion crosses, so the
-    task equilibrium x = x* stays. (N(q) k_p (q_rest - q) is no gradient and feeds energy in: test_cpic.py; on null-
-    space projections and passivity see Dietrich, Ott and Albu-Schaeffer, IJRR 2015.) Rest pose: config.q_rest if
-    given, else the q of the first step after construction, reset() or a policy change (setting ctrl.policy, as the
+    task equilibrium x = x* stays. (N(q) k_p (q_rest - q) is no gradient and feeds energy in: tests/test_cpic.py; on
+    null-space projections and passivity see Dietrich, Ott and Albu-Schaeffer, IJRR 2015.) Rest pose: config.q_rest
+    if given, else the q of the first step after construction, reset() or a policy change (setting ctrl.policy, as the
     runner's PolicySwitch does, resets); re-taking it sets P to 0, which only removes stored energy.
 
     The compensation (e.g. -robot.payload_torque(q, theta_hat)) is added after the QP (Appendix B). q, dq must be

@@ -1,5 +1,5 @@
 """Tests of the foundation: dynamics.py against MuJoCo's own computations and finite differences, and the
-sim.py plant's payload, push and sensor models. The pipeline (rme.py) is tested in test_pipeline.py."""
+sim.py plant's payload, push and sensor models. The pipeline (rme.py) is tested in tests/test_pipeline.py."""
 import dataclasses
 
 import mujoco

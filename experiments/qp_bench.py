@@ -1,6 +1,6 @@
 """Speed of qp.solve_qp against quadprog (PyPI quadprog 0.1.14: Turlach's Fortran implementation of the same
 Goldfarb-Idnani dual method) on random strictly convex QPs of the CPIC's size: 7 variables, 4-28 inequality
-constraints. `python -m experiments.qp_bench`; needs `pip install quadprog` (used only here and in test_qp.py)."""
+constraints. `python -m experiments.qp_bench`; needs `pip install quadprog` (used only here and in tests/test_qp.py)."""
 from __future__ import annotations
 
 import time

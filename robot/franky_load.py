@@ -90,15 +90,16 @@ class _LoadAt:
 
 def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.03, -0.02, 0.05), seed: int = 4,
                hostname: str = "127.0.0.1", start_timeout: float = 60.0, realtime: bool = False):
-    """franka.py's loop through pylibfranka (CPIC hold, RME with its estimates in a worker process) against this
-    module's server, started frictionless on `hostname` in its own process and stopped by its own pid at the end;
-    the server adds `mass` at `com` to the hand when the loop reads tick `at`. realtime: the loop's thread at
-    SCHED_FIFO when permitted (franka.realtime_priority; the server and the worker keep their own), as libfranka
-    runs it on a robot, on a CPU the server and the worker keep off (franka.own_cpu); summary["realtime"] says
-    whether it was at SCHED_FIFO. Returns franka.run_loop's (summary, log) and the
-    estimator. Needs pylibfranka and franky-sim (requirements-robot.txt)."""
-    import franka
+    """The bridge's loop (robot.loop.run_loop: CPIC hold, RME with its estimates in a worker process) through
+    pylibfranka against this module's server, started frictionless on `hostname` in its own process and stopped by
+    its own pid at the end; the server adds `mass` at `com` to the hand when the loop reads tick `at`. realtime: the
+    loop's thread at SCHED_FIFO when permitted (realtime_priority; the server and the worker keep their own), as
+    libfranka runs it on a robot, on a CPU the server and the worker keep off (own_cpu); summary["realtime"] says
+    whether it was at SCHED_FIFO. Returns run_loop's (summary, log) and the estimator. Needs pylibfranka and
+    franky-sim (requirements-robot.txt)."""
     from dynamics import Robot
+    from robot.backends import FrankySimBackend
+    from robot.loop import make_controller, own_cpu, realtime_priority, run_loop
     from robot.worker import EstimatorSpec, ProcessWorker
     spec, robot = EstimatorSpec(seed=seed), Robot.panda()
     with ProcessWorker(spec) as worker:
@@ -118,12 +119,12 @@ def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0
                     break
             if not ready:
                 raise RuntimeError("franky-sim did not start")
-            backend = franka.FrankySimBackend(hostname, realtime=False)
+            backend = FrankySimBackend(hostname, realtime=False)
             est = spec.build(executor=worker)
-            with franka.realtime_priority() if realtime else contextlib.nullcontext(False) as fifo, \
-                    franka.own_cpu([worker.pid, server.pid]) if realtime else contextlib.nullcontext():
-                summary, log = franka.run_loop(_LoadAt(backend, server, at), robot,
-                                               franka.make_controller(robot, backend.initial.q, "hold"), est, seconds)
+            with realtime_priority() if realtime else contextlib.nullcontext(False) as fifo, \
+                    own_cpu([worker.pid, server.pid]) if realtime else contextlib.nullcontext():
+                summary, log = run_loop(_LoadAt(backend, server, at), robot,
+                                        make_controller(robot, backend.initial.q, "hold"), est, seconds)
             summary["realtime"] = fifo
         finally:
             server.terminate()                                    # the server's own process

@@ -42,7 +42,7 @@ def sim_backend(seed: int, tool=None, run: int = 0, preset: str = "realistic"):
 
 
 def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings(), seconds=None):
-    """The excitation about backend.initial.q through franka's run_loop (for `seconds`, default: all of it):
+    """The excitation about backend.initial.q through robot.loop.run_loop (for `seconds`, default: all of it):
     (log arrays, summary, controller)."""
     controller = ExcitationController(robot, backend.initial.q, settings)
     seconds = controller.duration if seconds is None else seconds
@@ -124,7 +124,7 @@ def franka_identify(args, run_loop, make_backend) -> int:
     """franka.py --identify: with --sim, a reference motion with the flange empty and then the motion with the tool
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
     --log FILE with the flange empty) if given. Prints the report (--json), writes --save and --log. run_loop and
-    make_backend: franka's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
+    make_backend: franka.py's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
     if args.dry_run or (args.sim_tool is not None and not args.sim):
         raise ValueError(f"--identify: expected a motion (no --dry-run) and --sim-tool only with --sim, found "
                          f"--dry-run {args.dry_run}, --sim {args.sim}, --sim-tool {args.sim_tool}")

@@ -158,7 +158,7 @@ class ProcessWorker:
             self._outbox.append(("copy", self._prepared))
 
     def submit(self, fn, *args):
-        """Queue the job; it is sent by the next flush: busy() (which franka.run_loop calls after writing each
+        """Queue the job; it is sent by the next flush: busy() (which robot.loop.run_loop calls after writing each
         command, so the send is off the state-to-command path), or done() / result() of any job."""
         if getattr(fn, "__name__", None) != "_estimate":
             raise ValueError(f"fn: expected the bound method RME._estimate, found {fn!r}")

@@ -1,7 +1,7 @@
 """How soon a change is compensated when the arm is slow to settle: a heavy load sagging a compliant arm far out;
 against the reliability benchmark's episodes on the realistic plant."""
 from experiments.reliability import ReliabilityConfig, run_episode
-from test_streaming import SYNC
+from tests.helpers import SYNC
 
 
 def test_a_heavy_load_sagging_the_arm_is_compensated_within_300_ms():

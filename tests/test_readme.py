@@ -6,9 +6,9 @@ import runpy
 import sys
 
 import pytest
+from tests.helpers import ROOT
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-BLOCKS = re.findall(r"```python\n(.*?)```", open(os.path.join(HERE, "README.md")).read(), re.S)
+BLOCKS = re.findall(r"```python\n(.*?)```", open(os.path.join(ROOT, "README.md")).read(), re.S)
 
 
 def test_readme_has_python_blocks():
@@ -18,12 +18,12 @@ def test_readme_has_python_blocks():
 @pytest.mark.parametrize("code", BLOCKS, ids=[f"block{i + 1}" for i in range(len(BLOCKS))])
 def test_readme_block_runs_as_written(code, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)                                # files it writes go to a temporary folder
-    monkeypatch.syspath_prepend(HERE)
+    monkeypatch.syspath_prepend(ROOT)
     exec(compile(code, "README.md", "exec"), {"__name__": "__readme__"})
 
 
 def test_quickstart_runs(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["quickstart.py"])
-    runpy.run_path(os.path.join(HERE, "examples", "quickstart.py"), run_name="__main__")
+    runpy.run_path(os.path.join(ROOT, "examples", "quickstart.py"), run_name="__main__")
     out = capsys.readouterr().out
     assert "baseline given" in out and "stream:" in out

@@ -11,7 +11,7 @@ from experiments.runner import PayloadChange, Push, run
 from nn_train import DataConfig, random_pose
 from rme import RME
 from sim import Plant, PlantConfig
-from test_streaming import SYNC, _synthetic, hold, within
+from tests.helpers import SYNC, hold, synthetic_stream, within
 
 
 def test_a_downward_push_through_the_flange_is_held_and_never_applied():
@@ -160,7 +160,7 @@ def test_a_held_load_on_an_arm_that_keeps_moving_is_compensated_once_it_has_last
     """1.5 kg centred below the flange (held as a possible press) while one joint sweeps 0.7 rad at 0.2 rad/s: its
     residual changes with the pose, yet it is the same change, carried there (not a level that has moved on), so
     it is estimated on its detection's window once it has lasted hold_axial, while the arm still moves."""
-    est = _synthetic(SYNC, np.zeros(7), 4.5, load=np.array([1.5, 0.0, 0.0, 0.10]), t_load=1.2,
+    est = synthetic_stream(SYNC, np.zeros(7), 4.5, load=np.array([1.5, 0.0, 0.0, 0.10]), t_load=1.2,
                      move=(joint, 0.2, 1.0, 4.5))
     applied = [e for e in est.history if e.accepted]
     assert est.changes_held == 1 and applied and applied[0].applied < 1.2 + 2.5 + 0.3, \
@@ -200,7 +200,7 @@ def test_a_centred_change_on_a_slow_arm_is_estimated_when_the_task_expects_it():
     from dynamics import Robot, phi_of
     theta = np.array([1.0, 0.0, 0.0, 0.1])                             # centred 0.1 m below the flange
     size = 0.75 / np.linalg.norm(Robot.panda().payload_regressor(Q_READY) @ phi_of(theta))   # kg: 0.75 Nm's worth
-    runs = [_synthetic(SYNC, None, 3.0, move=(0, 0.05, 1.0, 3.0), drift=(theta, 0.75, 1.2), seed=7, expect=expect)
+    runs = [synthetic_stream(SYNC, None, 3.0, move=(0, 0.05, 1.0, 3.0), drift=(theta, 0.75, 1.2), seed=7, expect=expect)
             for expect in (None, (1.1, 2.0))]
     assert runs[0].history == []
     (e,) = runs[1].history

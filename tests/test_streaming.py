@@ -11,51 +11,7 @@ from experiments.runner import PayloadChange, Push, run
 from nn_train import DataConfig, random_pose
 from rme import RME, RMESettings
 from sim import Plant, PlantConfig
-
-SYNC = RMESettings(asynchronous=False)          # estimates applied on their sample: runs repeat exactly
-
-
-def hold(seed, seconds, events, q0=Q_READY, settings=SYNC, preset="realistic"):
-    """CPIC holds q0 on a plant (seeded), RME in the loop: the Record and the estimator."""
-    rng = np.random.default_rng(seed)
-    plant = Plant(PlantConfig.preset(preset, rng), rng=rng)
-    est = RME(plant.robot, settings=settings, rng=np.random.default_rng(seed + 1))
-    rec = run(plant, CPIC(plant.robot, Attractor(*plant.robot.ee_pose(q0))), seconds, est, events, q0=q0)
-    return rec, est
-
-
-def within(m_hat, m):
-    return abs(m_hat - m) <= max(0.1 * m, 0.05)
-
-
-def _synthetic(settings, bias, seconds, load=None, t_load=0.0, move=None, drift=None, seed=8, expect=None):
-    """A synthetic stream at the ready pose: tau_ext = bias (None: drawn, 0.1 Nm per joint) + noise, plus the payload
-    `load` theta (4,) from t_load, plus from t0 a payload-shaped drift of `offset` [Nm] along the payload theta_d,
-    ramped in over 0.1 s, if drift = (theta_d, offset, t0); joint j moving at w rad/s over [t0, t1) if move =
-    (j, w, t0, t1); RME.expect_change(s) called at t if expect = (t, s). The RME after `seconds`."""
-    from dynamics import phi_of
-    robot, rng = Robot.panda(), np.random.default_rng(seed)
-    est, q = RME(robot, settings=settings, rng=np.random.default_rng(seed + 1)), Q_READY.copy()
-    bias = rng.normal(0.0, 0.1, robot.n) if bias is None else bias
-    phi = None if load is None else phi_of(load)
-    if drift is not None:
-        d_phi = phi_of(drift[0])
-        scale = drift[1] / np.linalg.norm(robot.payload_regressor(Q_READY) @ d_phi)
-    for k in range(int(seconds * 1000)):
-        t, dq = k / 1000, np.zeros(robot.n)
-        if move is not None and move[2] <= t < move[3]:
-            dq[move[0]] = move[1]
-        q = q + dq * 1e-3
-        Y = robot.payload_regressor(q)
-        tau = bias + rng.normal(0.0, 0.005, robot.n)
-        if phi is not None and t >= t_load:
-            tau = tau + Y @ phi
-        if drift is not None and t >= drift[2]:
-            tau = tau + min(1.0, (t - drift[2]) / 0.1) * scale * (Y @ d_phi)
-        if expect is not None and k == int(round(expect[0] * 1000)):
-            est.expect_change(expect[1])
-        est.update(q, dq + rng.normal(0.0, 1e-3, robot.n), tau)
-    return est
+from tests.helpers import SYNC, hold, synthetic_stream, within
 
 
 def test_removal_right_after_the_estimate_at_rest_is_compensated():
@@ -330,7 +286,7 @@ def test_the_creep_after_a_compensation_is_left_to_the_estimate_at_rest_it_sched
     stream is estimated by that check while the arm creeps."""
     from dataclasses import replace
     kinds = lambda est: [(round(e.t, 3), e.kind) for e in est.history]
-    creep = lambda settings: _synthetic(settings, None, 3.0, load=np.array([1.0, 0.03, -0.02, 0.05]), t_load=0.8,
+    creep = lambda settings: synthetic_stream(settings, None, 3.0, load=np.array([1.0, 0.03, -0.02, 0.05]), t_load=0.8,
                                         move=(0, 0.05, 1.0, 2.5), drift=(np.array([1.0, 0.08, -0.05, 0.05]), 0.75, 1.0),
                                         seed=7)
     est, low = creep(SYNC), creep(replace(SYNC, monitor_far=0.7))
@@ -351,7 +307,7 @@ def test_a_payload_shaped_sensor_bias_at_start_up_is_not_taken_for_a_load_before
     other = J.T @ np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])      # a moment about the world z: no payload's
     other -= Y0 @ np.linalg.lstsq(Y0, other, rcond=None)[0]
     bias = pay + 0.2 * np.linalg.norm(pay) / np.linalg.norm(other) * other
-    est = _synthetic(SYNC, bias, 1.0)
+    est = synthetic_stream(SYNC, bias, 1.0)
     assert not est.history and np.all(est.theta == 0.0) and len(est._lv.explained) == 1
 
 

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 import franka
+import robot.loop as loop
 from diagnosis.logs import load_log, read_npz
 from dynamics import Robot
 from rme import RME, RMESettings
+from tests.helpers import ROOT
 
 ROBOT = Robot.panda()
 LIMIT = ROBOT.torque_limits()
@@ -310,7 +312,7 @@ def test_the_warm_up_before_the_loop_changes_nothing_it_commands(monkeypatch):
     commands of a seeded run with a load are bit for bit those of the same run without it."""
     def hold(warm):
         if not warm:
-            monkeypatch.setattr(franka, "_warm_up", lambda *args: None)
+            monkeypatch.setattr(loop, "_warm_up", lambda *args: None)
         q0 = franka.Q_START + np.array([0.2, -0.1, 0.1, 0.15, 0.0, -0.1, 0.3])   # not the warm-up's pose
         backend = franka.SimBackend(np.random.default_rng(5), q0=q0, payload=[(0.3, 1.0, R_ADD)])
         ctrl = franka.make_controller(ROBOT, backend.initial.q, "hold")
@@ -355,7 +357,7 @@ def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, 
     out = json.loads(capsys.readouterr().out)
     import subprocess                                   # the same run's log through rme.py identify, no reference
     res = subprocess.run([sys.executable, "rme.py", "identify", str(log), "--json"], capture_output=True, text=True,
-                         cwd=os.path.dirname(os.path.abspath(__file__)), timeout=120)
+                         cwd=ROOT, timeout=120)
     from_log = json.loads(res.stdout)
     assert res.returncode == 0 and set(from_log) >= {"mass", "com", "inertia", "desk", "libfranka_set_load"}
     assert any("no reference motion" in n for n in from_log["fit"]["notes"])

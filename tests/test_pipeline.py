@@ -8,7 +8,7 @@ from nn_numpy import WEIGHTS
 from rme import RME, RMESettings
 from experiments.runner import PayloadChange, run
 from sim import Q_READY, Plant, PlantConfig
-from test_rme import THREE_LINK
+from tests.helpers import THREE_LINK
 
 
 def static_window(theta, seed, delay=0.25):

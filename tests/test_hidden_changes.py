@@ -5,7 +5,7 @@ import pytest
 
 from experiments.reliability import ReliabilityConfig
 from experiments.runner import PayloadChange, Push
-from test_streaming import SYNC, hold, within
+from tests.helpers import SYNC, hold, within
 
 
 def test_changes_during_a_long_push_are_healed_once_the_arm_rests():

@@ -15,8 +15,8 @@ from dynamics import Q_READY, Robot, phi_of
 from error_model import ErrorModel
 from nn_train import random_pose
 from rme import RME
+from tests.helpers import ROOT
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 ROBOT = Robot.panda()
 ABS = np.array([0.4, 0.3, 0.35, 0.3, 0.15, 0.1, 0.12])      # Nm: a drawn robot's error over poses
 OFFSET = np.array([0.2, -0.8, 0.1, -0.6, 0.05, -0.2, 0.0])    # Nm: its mean
@@ -165,14 +165,14 @@ def test_calibrate_command_writes_a_model_rme_reads(tmp_path):
     tau = bias + rng.normal(0, 0.02, q.shape)
     t = np.arange(len(q)) * 1e-3
     write_npz(tmp_path / "rest.npz", dict(t=t, q=q, dq=np.zeros_like(q), tau_J=np.zeros_like(q), tau_ext=tau))
-    out = subprocess.run([sys.executable, os.path.join(HERE, "rme.py"), "calibrate", str(tmp_path / "rest.npz"),
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "rme.py"), "calibrate", str(tmp_path / "rest.npz"),
                           "--save", str(tmp_path / "robot.json"), "--json"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     rep = json.loads(out.stdout)
     assert rep["poses"] == 6 and rep["load"] == "none"
     model = RME(calibration=str(tmp_path / "robot.json")).error_model
     np.testing.assert_allclose(model.offset, np.mean(bias[::600], axis=0), atol=0.02)
-    bad = subprocess.run([sys.executable, os.path.join(HERE, "rme.py"), "calibrate", str(tmp_path / "none.csv")],
+    bad = subprocess.run([sys.executable, os.path.join(ROOT, "rme.py"), "calibrate", str(tmp_path / "none.csv")],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "none.csv" in bad.stderr
 
@@ -182,7 +182,7 @@ def test_a_worker_and_the_robot_bridge_rebuild_the_calibrated_estimator(tmp_path
     model = ErrorModel(tuple(ABS), tuple(REF), tuple(OFFSET), "drawn")
     model.save(tmp_path / "robot.json")
     assert EstimatorSpec(calibration=str(tmp_path / "robot.json")).build().error_model == model
-    out = subprocess.run([sys.executable, os.path.join(HERE, "franka.py"), "--sim", "--seconds", "0.05",
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "franka.py"), "--sim", "--seconds", "0.05",
                           "--calibration", str(tmp_path / "none.json")], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "none.json" in out.stderr and "Traceback" not in out.stderr
 
@@ -238,7 +238,7 @@ def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
         tau = ROBOT.payload_regressor(q) @ phi_of(theta) + rng.normal(0, 0.02, (900, 7))
         write_npz(tmp_path / f"log{k}.npz", dict(t=np.arange(900) * 1e-3, q=q, dq=np.zeros_like(q),
                                                  tau_J=np.zeros_like(q), tau_ext=tau))
-    out = subprocess.run([sys.executable, os.path.join(HERE, "sim.py"), "real-logs", str(tmp_path), "--json"],
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "sim.py"), "real-logs", str(tmp_path), "--json"],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)

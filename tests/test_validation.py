@@ -20,6 +20,7 @@ from motion.inertia import FitSettings
 from qp import solve_qp
 from rme import RME, RMESettings
 from sim import Plant, PlantConfig
+from tests.helpers import ROOT
 
 ROBOT = Robot.panda()
 LIMITS = ROBOT.torque_limits()
@@ -77,7 +78,7 @@ def test_an_ee_that_is_no_name_is_refused_not_a_crash():
     code = ("from dynamics import Robot\ntry:\n    Robot.from_xml(%r, ee=None)\nexcept ValueError as e:\n"
             "    print(e)\n" % PANDA_XML)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                         cwd=__file__.rsplit("/", 1)[0])
+                         cwd=ROOT)
     assert run.returncode == 0 and run.stdout.startswith("ee: expected"), (run.returncode, run.stdout, run.stderr)
 
 
@@ -328,7 +329,7 @@ def test_a_failing_command_is_one_line_on_stderr_without_traceback(tmp_path):
     bad = tmp_path / "w.npz"
     bad.write_bytes(b"not a weights file")
     run = subprocess.run([sys.executable, "nn_numpy.py", "bench", "--out", str(bad)], capture_output=True, text=True,
-                         timeout=120, cwd=__file__.rsplit("/", 1)[0])
+                         timeout=120, cwd=ROOT)
     assert run.returncode == 1 and run.stderr.count("\n") == 1 and "Traceback" not in run.stderr, run.stderr
     assert "could not read weights file" in run.stderr
 

@@ -11,6 +11,7 @@ import nn_numpy as nn
 import nn_train as nt
 from experiments import training
 from dynamics import Robot
+from tests.helpers import ROOT
 
 SMALL = nn.NetConfig(d=8, heads=2, d_hidden=12)      # same code paths, few enough entries to check them all
 
@@ -336,8 +337,7 @@ def test_nn_numpy_alone_loads_neither_the_trainer_nor_the_simulation():
     code = ("import sys, nn_numpy\n"
             "loaded = {'nn_train', 'sim', 'experiments', 'mujoco.viewer'} & set(sys.modules)\n"
             "assert not loaded, loaded\n")
-    here = os.path.dirname(os.path.abspath(__file__))
-    run = subprocess.run([sys.executable, "-c", code], cwd=here, capture_output=True, text=True, timeout=60)
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert run.returncode == 0, run.stderr
 
 

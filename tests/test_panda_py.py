@@ -5,20 +5,20 @@ loop is driven by a stand-in for Robot.control that calls the callback once per 
 Each check runs in a process of its own (panda-python bundles its own libfranka) and is bounded in time."""
 import importlib.util
 import json
-import os
 import subprocess
 import sys
 
 import pytest
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+from tests.helpers import ROOT
+
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("panda_py") is None,
                                 reason="panda-python is not installed (pip install -r requirements-robot.txt)")
 
 
 def run_python(code: str, timeout: float = 60.0) -> dict:
     """Run code in a fresh interpreter in the repository; it prints one JSON line last."""
-    out = subprocess.run([sys.executable, "-c", code], cwd=HERE, capture_output=True, text=True, timeout=timeout)
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
