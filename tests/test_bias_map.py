@@ -108,6 +108,7 @@ def test_the_hold_reference_holds_still_where_it_is_fitted_and_keeps_its_speed_b
         hold_poses(Q_READY[:6], cfg, np.random.default_rng(0))
 
 
+@pytest.mark.slow
 def test_the_command_line_fits_and_saves_a_map_from_a_hold_log(tmp_path, capsys):
     """`rme.py diagnose HOLDS.npz --add pose_bias --save map.json` on the whole load-free hold log (moves included:
     the nominal model's motion term covers them): the saved map loads by itself and predicts the plant's pose_bias at

@@ -24,6 +24,7 @@ def calibration():
     return (np.array([e.mean - w["theta"] for e, w in zip(E, windows)])[:, :3], np.array([e.std for e in E])[:, :3])
 
 
+@pytest.mark.slow
 def test_two_sigma_intervals_cover_90_to_99_percent_and_are_sharp(calibration):
     err, std = calibration
     assert 0.90 <= np.mean(np.abs(err) < 2 * std) <= 0.99

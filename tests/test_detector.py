@@ -147,12 +147,14 @@ def test_fires_for_light_load_under_compliant_control_in_simulation():
     assert len(fired) == 2 and np.all((fired - [1.0, 2.5] > 0) & (fired - [1.0, 2.5] < 0.5))
 
 
+@pytest.mark.slow
 def test_ignores_lateral_human_pushes_in_simulation():
     pushes = [((15.0, 0, 0), 0.8, 1.0), ((0, 20.0, 0), 2.5, 0.6), ((8.0, -6.0, 0), 3.5, 1.5),
               ((30.0, 0, 0), 5.5, 0.2), ((10.0, 0, -10.0), 6.2, 1.0)]
     assert run_episode(7.5, np.random.default_rng(6), pushes=pushes) == []
 
 
+@pytest.mark.slow
 def test_ignores_free_motion_in_simulation():
     def smooth(t, t0):                                            # 0 -> 1 over 1 s (quintic)
         x = np.clip(t - t0, 0.0, 1.0)
@@ -163,6 +165,7 @@ def test_ignores_free_motion_in_simulation():
     assert run_episode(6.5, np.random.default_rng(7), motion=motion) == []
 
 
+@pytest.mark.slow
 def test_update_cost_does_not_grow_with_window_length():
     """Detectors with 500- and 50,000-sample windows (the paper's sub-windows anchored at the end) updated in turn,
     so both see the same machine load; the median time per update must not grow with the window."""

@@ -154,6 +154,7 @@ def test_log_evidence_matches_a_closed_form_where_the_model_is_linear():
     assert evid(0.6, 0.5) - evid(1.5, 1.5) == pytest.approx(closed(0.6, 0.5) - closed(1.5, 1.5), abs=1e-3)
 
 
+@pytest.mark.slow
 def test_calibrate_command_writes_a_model_rme_reads(tmp_path):
     rng = np.random.default_rng(8)
     t, q = [], []
@@ -177,6 +178,7 @@ def test_calibrate_command_writes_a_model_rme_reads(tmp_path):
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "none.csv" in bad.stderr
 
 
+@pytest.mark.slow
 def test_a_worker_and_the_robot_bridge_rebuild_the_calibrated_estimator(tmp_path):
     from robot.worker import EstimatorSpec
     model = ErrorModel(tuple(ABS), tuple(REF), tuple(OFFSET), "drawn")
@@ -227,6 +229,7 @@ def test_a_constant_shared_by_the_joints_is_marginalised_exactly():
     assert win.log_norm == pytest.approx(0.5 * np.linalg.slogdet(2 * np.pi * S)[1], rel=1e-8)
 
 
+@pytest.mark.slow
 def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
     """Two logs of one 0.8 kg load resting at 2 poses each: the pooled least-squares payload is the truth to 2 %, and
     every method reports its median, spread, and (but least squares) sigma and coverage."""

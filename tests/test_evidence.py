@@ -110,6 +110,7 @@ def _tilted_hold(accumulate, seed=0, theta=(1.0, 0.03, -0.02, 0.13)):
     return est, np.array(theta)
 
 
+@pytest.mark.slow
 def test_streaming_combines_the_windows_of_one_load_seen_from_a_new_side():
     """At the ready pose rz is the network's guess; once the arm rests at the tilted pose the stream combines that
     window with the one at rest (each referred to the torque before the load): rz within 10 mm, its std 3x smaller,

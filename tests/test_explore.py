@@ -80,6 +80,7 @@ def test_both_windows_refer_to_a_still_stretch_before_the_load(realistic):
     assert np.abs(rec.dq[k:k + L - 30]).max(initial=0.0) < 0.01   # before RME's own 30: RMESettings.rest_speed
 
 
+@pytest.mark.slow
 def test_the_map_predicts_the_plants_joint_friction_at_creeping_speeds():
     """The map fitted on the load-free holds with friction: at poses near the ready pose and joint speeds of +-0.02 rad/s
     (the arm creeping back to its target), its velocity part is the plant's own Gaz friction (tau_ext sign: -tau_f)
@@ -104,6 +105,7 @@ def test_settings_are_checked():
         Explorer(settings={"tilt": 0.4})
 
 
+@pytest.mark.slow
 def test_a_calibrated_bias_map_brings_the_explored_rz_below_the_error_without_it():
     """A realistic plant (seed 4000, payload 4 of `python sim.py explore`), its load-free torque map (with its joint
     friction) fitted on a separate hold log without payload (experiments/bias_map.py) and given to RME: the
@@ -120,6 +122,7 @@ def test_a_calibrated_bias_map_brings_the_explored_rz_below_the_error_without_it
     assert abs(x.after.mean[0] - THETA[0]) < 0.005
 
 
+@pytest.mark.slow
 def test_a_load_free_reference_tilt_brings_rz_below_5_mm_where_the_links_errors_hide_it():
     """A realistic plant (seed 4001, payload 4 of `python sim.py explore --seed 1`) whose links' model errors read as
     rz: no second window tells them from the payload's (docs/exploration.md). With reference_tilt the explorer
@@ -137,6 +140,7 @@ def test_a_load_free_reference_tilt_brings_rz_below_5_mm_where_the_links_errors_
     assert abs(x.after.mean[0] - THETA[0]) < 0.01 and np.abs(x.after.mean[1:3] - THETA[1:3]).max() < 0.003
 
 
+@pytest.mark.slow
 def test_a_push_abandons_the_reference_tilt_and_it_is_made_again_once_the_arm_is_still():
     """A push 0.4 s into the reference tilt abandons it with nothing kept; the tilt is made again once all is still,
     and only that one is recorded."""
@@ -170,6 +174,7 @@ def _referring(seed, events, seconds, switch=None):
     return rec, explorer
 
 
+@pytest.mark.slow
 def test_a_reference_tilt_is_made_once_and_serves_only_its_own_start_pose():
     """The reference is recorded at the ready pose; the task then moves its target 0.15 rad away on joints 2 and 4
     and a load is hung on there: no second reference tilt, and the load's exploration is not referred to the one
@@ -181,6 +186,7 @@ def test_a_reference_tilt_is_made_once_and_serves_only_its_own_start_pose():
     assert rest and not any(x.reference for x in rest) and rest[0].status == "applied" and not rest[0].referred
 
 
+@pytest.mark.slow
 def test_no_reference_tilt_with_a_load_on_the_hand():
     """A tool held from the start, which RME takes for the sensor's bias: the tilt's change (0.8 kg, 8 cm out) is
     beyond reference_limit, so nothing is kept and no tilt follows. A load hung on before the arm is first still is
@@ -192,6 +198,7 @@ def test_no_reference_tilt_with_a_load_on_the_hand():
     assert rec.exploration and not any(x.reference for x in rec.exploration) and explorer.references == []
 
 
+@pytest.mark.slow
 def test_a_policy_change_while_a_reference_tilt_returns_keeps_its_outcome():
     """The task switches to a new Attractor 0.2 s before a reference tilt is back: the tilt ends at once, still
     "recorded" (or "refused", with a tool on the hand), and no other reference tilt follows."""
@@ -204,6 +211,7 @@ def test_a_policy_change_while_a_reference_tilt_returns_keeps_its_outcome():
         assert len(explorer.references) == (outcome == "recorded")
 
 
+@pytest.mark.slow
 def test_a_faulty_sample_in_the_explorations_window_is_dropped_as_rme_drops_it():
     """A tau_ext sample that is not finite, 20 ms before the exploration starts (inside its window at the start pose):
     RME drops it and so does the explorer, whose sample count stays RME's; the exploration ends as it does without

@@ -43,6 +43,7 @@ def load_weight(q, theta) -> np.ndarray:
 
 
 # --- what one pose cannot tell -----------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("hidden", ["offset", "payload"])
 def test_static_log_at_one_pose_yields_the_ambiguity_finding_not_an_offset(hidden):
     d = D.diagnose(Model.nominal(ROBOT), prepare(held(hidden)))
@@ -72,6 +73,7 @@ def test_a_fit_that_would_put_a_com_metres_away_is_bounded_and_reported():
     assert "m from the hand, beyond the 0.3 m" in texts, texts
 
 
+@pytest.mark.slow
 def test_save_refuses_a_model_held_at_a_bound_and_force_saves_it(tmp_path, capsys):
     raw = sweep()
     save_log(tmp_path / "far.npz", with_torque(raw, load_weight(raw["q"], (0.4, 2.0, 0.0, 0.0))))
@@ -94,6 +96,7 @@ def ringing(t, t0, f, decay, shape) -> np.ndarray:
     return ((t >= t0) * np.exp(-decay * tt) * np.sin(2 * np.pi * f * tt))[:, None] * np.asarray(shape)[None, :]
 
 
+@pytest.mark.slow
 def test_a_decaying_vibration_is_found_with_its_frequency_within_5_percent(tmp_path, capsys):
     raw = held("none")
     shape = np.array([0.0, 0.15, 0.0, 0.3, 0.05, 0.1, 0.0])           # Nm, mostly the shoulder and elbow
@@ -115,6 +118,7 @@ def test_a_decaying_vibration_is_found_with_its_frequency_within_5_percent(tmp_p
         assert vib is not None and abs(vib["frequency"] - f) <= 0.05 * f, (f, decay, vib)
 
 
+@pytest.mark.slow
 def test_a_load_step_is_found_within_50_ms_and_each_segment_is_diagnosed(tmp_path, capsys):
     raw = held("none")
     rng = np.random.default_rng(21)

@@ -34,6 +34,7 @@ def hold_run(tmp_path_factory):
     return summary, log, path, backend
 
 
+@pytest.mark.slow
 def test_sim_hold_detects_kilogram_and_reads_its_mass_at_rest(hold_run):
     summary, log, _, backend = hold_run
     assert summary["cycles"] == 3000 and summary["stopped"] == "end"
@@ -175,6 +176,7 @@ def test_cli_refuses_without_package_and_checks_arguments(monkeypatch, capsys):
         assert stop.value.code == 2 and err.count("\n") == 1 and f"argument {name}: expected" in err, err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("worker", ["thread", "process"])
 def test_cli_runs_the_estimates_beside_the_loop_and_restores_the_switch_interval(capsys, worker):
     """RME's estimates run in a worker (the loop only polls them); --sync-estimate runs them in the loop."""
@@ -342,6 +344,7 @@ def test_own_cpu_keeps_the_loop_on_one_cpu_and_other_processes_off_it_then_resto
         child.wait(timeout=10)
 
 
+@pytest.mark.slow
 def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, capsys):
     """franka.py --identify --sim --sim-tool on a fresh plant and tool (seeded draw): --json's mass, com, inertia
     (flange frame) near the tool given, to the targets for mass (1 % or 10 g) and CoM (3 mm per axis) and to 40 % for

@@ -8,6 +8,7 @@ from experiments.runner import PayloadChange, Push
 from tests.helpers import SYNC, hold, within
 
 
+@pytest.mark.slow
 def test_changes_during_a_long_push_are_healed_once_the_arm_rests():
     """The reliability benchmark's episode of seed 93: 1.66 kg attached, then 0.38 kg and 2.01 kg while a 41 N push
     holds the arm aside for 1.6 s. The first level was never seen at rest before the first load; the level the
@@ -20,6 +21,7 @@ def test_changes_during_a_long_push_are_healed_once_the_arm_rests():
     assert ep["final_error_mm"] < 10.0
 
 
+@pytest.mark.slow
 def test_a_removal_after_a_misread_load_is_healed_once_the_arm_rests():
     """The reliability benchmark's episode of seed 6: a 2.39 kg load is read 1.51 kg at rest and then removed; no
     level had been seen at rest before, so the monitor's first level is judged against the compensation it has (not
@@ -30,6 +32,7 @@ def test_a_removal_after_a_misread_load_is_healed_once_the_arm_rests():
     assert ep["final_error_mm"] < 10.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [39, 100_046])
 def test_a_load_removed_under_a_push_is_withdrawn_at_rest(seed):
     """Reliability episodes (seed 0 episode 39, seed 1 episode 46): a load attached (39: read 0.36 kg against the
@@ -42,6 +45,7 @@ def test_a_load_removed_under_a_push_is_withdrawn_at_rest(seed):
     assert ep["final_error_mm"] < 10.0
 
 
+@pytest.mark.slow
 def test_a_small_load_left_after_a_partial_removal_under_a_push_is_not_withdrawn():
     """1.2 kg goes to 0.3 kg under a 30 N push, the check of a slow arm off: at rest the residual is far from the
     level known, tau_ext small as a bias, yet the estimate against no payload explains 81 %: not withdrawn (0 kg for

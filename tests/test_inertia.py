@@ -231,6 +231,7 @@ def _samples(unloaded=1.5, loaded=2.0):
     return q, dq, tau
 
 
+@pytest.mark.slow
 def test_no_sample_does_more_than_a_row_and_a_solver_step():
     """A refit works on the (7, 12, 12) statistics, never on rows, one Newton step per sample: every sample's own
     CPU time (min over 3 identical replays, which removes the machine's spikes but not a heavy sample) stays under

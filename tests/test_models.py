@@ -49,6 +49,7 @@ def fitted():
     return model, log
 
 
+@pytest.mark.slow
 def test_a_saved_model_round_trips_exactly_and_rme_uses_it(fitted, tmp_path):
     model, log = fitted
     model.save(tmp_path / "model.json")
@@ -78,6 +79,7 @@ def test_a_model_file_that_is_not_one_is_a_value_error(tmp_path):
         Model.load(tmp_path / "absent.json")
 
 
+@pytest.mark.slow
 def test_the_command_line_saves_the_model_it_fits(fitted, tmp_path):
     _, log = fitted
     path = tmp_path / "log.npz"
@@ -87,6 +89,7 @@ def test_the_command_line_saves_the_model_it_fits(fitted, tmp_path):
     assert m.names == ["gravity", "motion", "sigmoid", "offset"] and m.fitted
 
 
+@pytest.mark.slow
 def test_a_six_joint_arm_runs_through_the_command_line(tmp_path, capsys):
     """A log of a 6-joint arm (its own MJCF) with hidden viscous friction: the command line, given --xml and --ee,
     compares, diagnoses and names viscous friction; without --xml the joint count is refused."""

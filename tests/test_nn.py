@@ -224,6 +224,7 @@ def test_features_reject_short_window_and_nan():
 
 
 # --- training and the shipped weights -------------------------------------------------------------
+@pytest.mark.slow
 def test_few_hundred_adam_steps_halve_held_out_mass_loss_and_beat_predicting_the_mean():
     """train() on 16 simulated episodes for 300 steps, judged on 6 further episodes it never saw (not even for
     early stopping). With so few episodes only the mass is learnable (the CoM needs the full set: see the
@@ -245,6 +246,7 @@ def test_few_hundred_adam_steps_halve_held_out_mass_loss_and_beat_predicting_the
     assert info["history"][-1][1] < 0.5 * info["history"][0][1]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists(nn.WEIGHTS), reason="no shipped weights.npz")
 def test_shipped_weights_beat_training_mean_on_held_out_simulated_windows():
     """Fresh episodes (seed 777, not the training seed) from the realistic plant: the network's MSE is below
@@ -348,6 +350,7 @@ def test_retrain_command_hands_its_arguments_to_train_from_scratch(monkeypatch, 
     assert calls == [(3, 5, str(tmp_path / "w.npz"))]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists(nn.WEIGHTS), reason="no shipped weights.npz")
 def test_benchmark_reports_positive_microsecond_timings_under_keys_ending_in_us():
     """The timing table collects the keys ending in "_us"; the three medians must be there, in us."""

@@ -65,6 +65,7 @@ def test_network_bench_labels_the_weights_files_training_time_as_recorded_not_me
     assert "measured in this run" in out and "median [us]" in out
 
 
+@pytest.mark.slow
 def test_a_load_held_as_a_possible_press_says_why_it_was_applied_late():
     """A load centred below the flange looks like a hand pressing on it: RME holds it hold_axial (2.5 s), then
     applies it, and the estimate says why; a load off that line is applied at once with no reason (seeded

@@ -18,6 +18,7 @@ def static_window(theta, seed, delay=0.25):
     return q, tau
 
 
+@pytest.mark.slow
 def test_estimate_recovers_mass_and_horizontal_com_on_realistic_windows():
     """Ready pose, ee pointing down: m, rx, ry are observable, rz (along gravity) is not (paper_notes)."""
     est = RME(rng=np.random.default_rng(0))
@@ -85,6 +86,7 @@ def closed_loop(use_rme, theta, seconds=3.0, t_attach=1.0, seed=5):
     return np.linalg.norm(rec.p - p_star, axis=1), rec.tau, est
 
 
+@pytest.mark.slow
 def test_rme_returns_the_arm_to_its_pose_and_without_it_the_arm_sags():
     theta = np.array([1.1, 0.05, 0.02, 0.13])
     err_rme, taus, est = closed_loop(True, theta)
@@ -126,6 +128,7 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
     np.testing.assert_array_equal(est.theta, [3.0, 1.0, -1.0, 1.0])     # 3.5 kg at 5 m, clipped to the limits
 
 
+@pytest.mark.slow
 def test_fitted_friction_correction_removes_the_friction_bias_of_rme():
     """Friction holds part of a new load while the arm settles (RME reads it light); friction fitted by the diagnosis
     tool on an excitation log of the same robot and subtracted from tau_ext removes most of that bias."""

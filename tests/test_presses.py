@@ -14,6 +14,7 @@ from sim import Plant, PlantConfig
 from tests.helpers import SYNC, hold, synthetic_stream, within
 
 
+@pytest.mark.slow
 def test_a_downward_push_through_the_flange_is_held_and_never_applied():
     """Pressing straight down on the hand for 1.8 s: to the joint torques a load centred below the flange. RME holds
     such a change for hold_axial (2.5 s) and the push ends first: nothing is estimated or applied. Without the hold
@@ -27,6 +28,7 @@ def test_a_downward_push_through_the_flange_is_held_and_never_applied():
     assert rec_off.theta_hat[:, 0].max() > 1.5                       # 20 N read as about 2 kg
 
 
+@pytest.mark.slow
 def test_a_load_centred_below_the_flange_is_compensated_once_it_has_lasted():
     """The other side of that hold: 1 kg hanging 10 cm straight below the flange at the ready pose (ee z down) waits
     hold_axial, then the monitor compensates it. A load 5 cm off that line is compensated at the detection."""
@@ -40,6 +42,7 @@ def test_a_load_centred_below_the_flange_is_compensated_once_it_has_lasted():
     assert within(rec.theta_hat[-1, 0], 1.0)
 
 
+@pytest.mark.slow
 def test_a_centred_load_the_task_expects_is_compensated_at_its_detection():
     """The same centred 1 kg, with the task telling RME 0.1 s before that it grasps (RME.expect_change): not held,
     compensated at its detection, within 0.4 s and 10 %. The same call while a held change waits (told 0.5 s after
@@ -66,6 +69,7 @@ def test_a_centred_load_the_task_expects_is_compensated_at_its_detection():
             est.expect_change(bad)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("force, seconds", [(8.0, 0.8), (14.0, 1.5)])
 def test_a_lift_by_the_hand_read_as_part_of_the_load_gone_is_undone_at_its_release(force, seconds):
     """A person lifts the hand from below under a compensated 2 kg load off the flange's line: to the torques part
@@ -79,6 +83,7 @@ def test_a_lift_by_the_hand_read_as_part_of_the_load_gone_is_undone_at_its_relea
     assert within(rec.theta_hat[rec.at(2.5 + seconds + 0.6), 0], 2.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("first", ["removal", "press"])
 def test_a_press_like_the_load_just_gone_is_still_held(first):
     """Taking a lift's release back to the load before it must not let a press pass for a load coming back: after a
@@ -91,6 +96,7 @@ def test_a_press_like_the_load_just_gone_is_still_held(first):
     assert rec.theta_hat[rec.at(t):, 0].max() < 0.05, [(e.t, e.kind, e.mean[0]) for e in est.history]
 
 
+@pytest.mark.slow
 def test_the_estimate_at_rest_waits_while_a_push_holds_the_resting_arm():
     """A 2 kg load read 1.87 kg at its detection, then a 14 N push, down and 6 N sideways, from before the arm rests
     until 3.5 s: the change from before the load is then no payload (its force is not vertical), so the estimate at
@@ -102,6 +108,7 @@ def test_the_estimate_at_rest_waits_while_a_push_holds_the_resting_arm():
     assert e.accepted and e.t > 3.5 and abs(e.mean[0] - 2.0) < 0.05
 
 
+@pytest.mark.slow
 def test_a_press_while_a_loads_estimate_at_rest_is_pending_keeps_that_estimate():
     """An off-axis 1 kg load read 7 % light at its detection, then a 20 N press through the flange for 1 s before the
     arm rests: the press is held and released, and the load's estimate at rest still comes (without the press it
@@ -113,6 +120,7 @@ def test_a_press_while_a_loads_estimate_at_rest_is_pending_keeps_that_estimate()
     assert abs(rec.theta_hat[-1, 0] - 1.0) < 0.03 and rec.theta_hat[:, 0].max() < 1.2   # the press never applied
 
 
+@pytest.mark.slow
 def test_on_a_cycling_arm_a_centred_load_is_compensated_once_it_has_lasted_and_a_later_press_is_not():
     """The arm never rests on the limit cycle: a load centred below the flange is estimated once it has lasted
     hold_axial, on the window of its detection (the pose before it is long gone), and a 20 N press through the
@@ -133,6 +141,7 @@ def test_on_a_cycling_arm_a_centred_load_is_compensated_once_it_has_lasted_and_a
     assert np.abs(rec.theta_hat[rec.t >= 5.0, 0] - applied[0].mean[0]).max() < 1e-12   # the press: nothing applied
 
 
+@pytest.mark.slow
 def test_a_held_change_whose_level_has_moved_on_is_not_estimated_on_its_old_window():
     """The reliability benchmark's episode of seed 75: the arm creeps from its start and is never calm; 1.69 kg hung
     on at 1.84 s is held as a possible press, three pushes follow, the load is removed at 2.79 s and 2.99 kg hung on at
@@ -168,6 +177,7 @@ def test_a_held_load_on_an_arm_that_keeps_moving_is_compensated_once_it_has_last
     assert within(applied[0].mean[0], 1.5)
 
 
+@pytest.mark.slow
 def test_a_press_read_as_a_plausible_load_at_the_detection_is_withdrawn_once_the_arm_rests():
     """A person presses 20 N down on a handle 0.45 m out from the hand: to the torques 2 kg with its CoM 0.32 m out
     along the ee's x and y, just beyond max_com. The window at the detection, still in the arm's sag, reads it
@@ -182,6 +192,7 @@ def test_a_press_read_as_a_plausible_load_at_the_detection_is_withdrawn_once_the
     assert np.all(rec.theta_hat[rec.t > w.applied + 0.002] == 0.0)
 
 
+@pytest.mark.slow
 def test_a_held_press_that_shifts_as_the_arm_yields_stays_held():
     """The reliability benchmark's push-only episode of seed 350076: 34 N straight down for 1.3 s, held as a possible
     press. The arm yields to it at 0.3 rad/s and the detector fires again on that small shift (1.8 N). Referred to

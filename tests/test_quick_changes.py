@@ -1,9 +1,12 @@
 """How soon a change is compensated when the arm is slow to settle: a heavy load sagging a compliant arm far out;
 against the reliability benchmark's episodes on the realistic plant."""
+import pytest
+
 from experiments.reliability import ReliabilityConfig, run_episode
 from tests.helpers import SYNC
 
 
+@pytest.mark.slow
 def test_a_heavy_load_sagging_the_arm_is_compensated_within_300_ms():
     """The reliability benchmark's episode of seed 28: 2.91 kg attached far out, a 22 Nm change; the arm sags and
     creeps back for 0.4 s, so a drift of 3 % of the change is reached only after 420 ms. The allowance that grows with

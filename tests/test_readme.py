@@ -15,6 +15,7 @@ def test_readme_has_python_blocks():
     assert len(BLOCKS) >= 3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("code", BLOCKS, ids=[f"block{i + 1}" for i in range(len(BLOCKS))])
 def test_readme_block_runs_as_written(code, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)                                # files it writes go to a temporary folder
@@ -22,6 +23,7 @@ def test_readme_block_runs_as_written(code, tmp_path, monkeypatch):
     exec(compile(code, "README.md", "exec"), {"__name__": "__readme__"})
 
 
+@pytest.mark.slow
 def test_quickstart_runs(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["quickstart.py"])
     runpy.run_path(os.path.join(ROOT, "examples", "quickstart.py"), run_name="__main__")

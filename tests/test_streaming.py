@@ -14,6 +14,7 @@ from sim import Plant, PlantConfig
 from tests.helpers import SYNC, hold, synthetic_stream, within
 
 
+@pytest.mark.slow
 def test_removal_right_after_the_estimate_at_rest_is_compensated():
     load = PayloadChange(1.0, 1.0, (0.03, -0.02, 0.1))
     _, est = hold(3, 3.5, [load])
@@ -24,6 +25,7 @@ def test_removal_right_after_the_estimate_at_rest_is_compensated():
     assert np.linalg.norm(rec.p[-1] - rec.target[-1]) < 0.01
 
 
+@pytest.mark.slow
 def test_heavy_load_on_a_slowly_settling_arm_is_compensated():
     """2.5 kg at a pose where the compliant arm settles for seconds: no settled window for the detector, so the
     monitor must catch it once the arm is calm."""
@@ -33,6 +35,7 @@ def test_heavy_load_on_a_slowly_settling_arm_is_compensated():
     assert 1e3 * np.linalg.norm(rec.p[-1] - rec.target[-1]) < 10.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("force", [(0.0, 0.0, 25.0), (0.0, 0.0, 40.0)])
 def test_release_of_an_upward_push_is_not_applied(force):
     """An upward push lifts the arm; its release drops tau_ext back to where it was before the push, which a detector
@@ -45,6 +48,7 @@ def test_release_of_an_upward_push_is_not_applied(force):
     assert not est.history, [(e.t, e.kind, e.reason) for e in est.history]
 
 
+@pytest.mark.slow
 def test_a_push_tilted_from_vertical_is_not_a_payload():
     """Gravity pulls straight down: a push 15-25 deg off vertical, held 1.5 s at the flange, is not estimated, even
     where its torques are explained to 97 % by a point mass (reliability push-only episode 28, seed 0: a push
@@ -77,6 +81,7 @@ def test_a_load_read_light_on_a_creeping_arm_is_estimated_again_once_calm():
     assert abs(last["m"] - 1.33) < 0.01 and last["compensated"], last
 
 
+@pytest.mark.slow
 def test_a_load_read_light_in_motion_is_estimated_again_after_a_push_kept_the_arm_from_resting():
     """Reliability episode 19 of seed 1: 0.975 kg read 0.844 kg at the detection (the arm moving at 0.1 rad/s, joint
     friction holding part of it); a 32 N push starts just before the arm has rested for a whole window and lasts
@@ -89,6 +94,7 @@ def test_a_load_read_light_in_motion_is_estimated_again_after_a_push_kept_the_ar
         assert abs(change["m"] - m) < 0.01 and change["compensated"], (seed, change)
 
 
+@pytest.mark.slow
 def test_a_change_the_detector_misses_is_healed_once_the_arm_rests():
     blind = RMESettings(asynchronous=False, detector=DetectorSettings(activation_threshold=1e6))   # never fires
     rec, est = hold(7, 4.0, [PayloadChange(1.0, 0.9, (0.05, -0.03, 0.13))], settings=blind)
@@ -100,6 +106,7 @@ def test_a_change_the_detector_misses_is_healed_once_the_arm_rests():
     assert rec_off.theta_hat[-1, 0] == 0.0                           # without the monitor the load stays missed
 
 
+@pytest.mark.slow
 def test_a_wrong_compensation_is_corrected_at_rest():
     """A phantom estimate of 1.5 kg forced in while nothing is attached is withdrawn by the monitor."""
     rng = np.random.default_rng(99)
@@ -154,6 +161,7 @@ def test_detector_shift_equals_a_detector_fed_the_shifted_samples(before, algori
                 np.testing.assert_allclose(a.status[key], b.status[key], rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_small_reliability_run_is_safe_and_compensates_what_rests():
     res = reliability(episodes=3, push_episodes=2, seed=1, cfg=ReliabilityConfig(), log=lambda *a: None)
     s = res["summary"]
@@ -163,6 +171,7 @@ def test_small_reliability_run_is_safe_and_compensates_what_rests():
     assert s["final_error_below_target"] == s["load_episodes"]
 
 
+@pytest.mark.slow
 def test_limit_cycle_with_a_load_recovers_on_the_default_seed():
     """The demo's case (`python sim.py limit-cycle`, realistic preset, seed 0): 2 kg attached while the arm cycles.
     The detector misses it in motion; the arm sags towards a spurious attractor, slows, and once it is calm the
@@ -184,6 +193,7 @@ def first_applied(est):
     return min((e.applied for e in est.history if e.accepted and e.applied is not None), default=np.inf)
 
 
+@pytest.mark.slow
 def test_a_load_added_during_a_push_is_compensated_while_the_arm_returns():
     """A person pushes the hand aside with 36 N for 1.5 s and a 1.5 kg load is hung on it meanwhile. After the
     release the arm swings back for about a second; the monitor checks it once it is slower than 0.1 rad/s, not
@@ -210,6 +220,7 @@ def test_a_load_on_a_resting_arm_is_the_detectors_to_estimate():
     assert abs(est.history[0].mean[0] - 0.6) < 0.06
 
 
+@pytest.mark.slow
 def test_a_load_first_seen_at_the_first_rest_is_estimated_though_the_bias_bends_its_wrench():
     """The reliability benchmark's episode of seed 100018: pushes keep the arm from resting until 1.06 kg hangs on
     it, so the first level RME sees is the load's plus the sensor's unknown bias, judged against no payload. That
@@ -221,6 +232,7 @@ def test_a_load_first_seen_at_the_first_rest_is_estimated_though_the_bias_bends_
     assert 0.85 < ep["changes"][-1]["m_hat"] < 1.2, ep["changes"]
 
 
+@pytest.mark.slow
 def test_a_person_holding_the_arm_from_start_up_is_not_taken_for_the_sensors_bias():
     """A person holds the hand aside with 34 N from 0.3 s to 2.5 s, so the first level RME sees at rest is that push's
     (about 17 Nm, no payload) and is taken for the bias; 2 kg is hung on just before the release. Against the push's
@@ -235,6 +247,7 @@ def test_a_person_holding_the_arm_from_start_up_is_not_taken_for_the_sensors_bia
     assert np.linalg.norm(rec.p[-1] - rec.target[-1]) < 0.01
 
 
+@pytest.mark.slow
 def test_after_a_start_up_hold_a_press_is_still_held_and_a_first_level_refused_is_doubtful_too():
     """The doubtful first level's two other sides. After the same start-up hold, a person presses 25 N down on the
     hand for 1.5 s: against no payload (the bias in it bends its wrench) it is still a press through the flange's
@@ -251,6 +264,7 @@ def test_after_a_start_up_hold_a_press_is_still_held_and_a_first_level_refused_i
     assert np.linalg.norm(rec.p[-1] - rec.target[-1]) < 0.01
 
 
+@pytest.mark.slow
 def test_a_level_refused_on_a_slow_arm_is_not_estimated_again_and_again():
     """A person presses down 20 N on a handle 0.55 m out from the hand for 4.5 s: to the torques a payload with its
     CoM 0.39 m out along the ee's x and y, beyond max_com, so every estimate of it is refused (one 0.45 m out lies
@@ -266,6 +280,7 @@ def test_a_level_refused_on_a_slow_arm_is_not_estimated_again_and_again():
     assert len(refused) <= len(off.history) + 1, [(round(e.t, 2), e.kind, e.reason) for e in est.history]
 
 
+@pytest.mark.slow
 def test_a_change_while_the_arm_still_creeps_after_the_last_estimate_is_not_left_until_it_rests():
     """The reliability benchmark's episode of seed 86: 2.73 kg is compensated at once, and the heavily loaded arm
     then creeps back at 0.04 rad/s, so the estimate at rest it scheduled stays due. At 3.71 s the load drops to
@@ -311,6 +326,7 @@ def test_a_payload_shaped_sensor_bias_at_start_up_is_not_taken_for_a_load_before
     assert not est.history and np.all(est.theta == 0.0) and len(est._lv.explained) == 1
 
 
+@pytest.mark.slow
 def test_a_load_on_a_resting_arm_is_compensated_within_200_ms_on_the_samples_after_it():
     """The detector's stabilisation checks span the last 150 ms and the estimate at the detection takes those 150
     samples, all after the change: a 0.9 kg load is compensated within 0.2 s and read within 10 %. The control:

@@ -205,6 +205,7 @@ def simulated():
     return [(th, simulated_window(th, rng, q0), th + SP * rng.standard_normal(4)) for th, q0 in cases]
 
 
+@pytest.mark.slow
 def test_converges_in_far_fewer_than_700_iterations(simulated):
     rng = np.random.default_rng(6)
     iters = []

@@ -123,6 +123,7 @@ def _windows(robot, rng, thetas):
     return out
 
 
+@pytest.mark.slow
 def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
     """The worker rebuilds the estimator from the spec (MJCF, weights, settings, seed): the same sequence of windows
     gives exactly the estimates (mean, covariance, prior, Y) of the estimator the spec builds in this process, whether
@@ -150,6 +151,7 @@ def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
     assert abs(got[0][0].mean[0] - 1.0) < 0.1                    # and it is an estimate of the payload
 
 
+@pytest.mark.slow
 def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
     """prepare(q, tau) puts the windows in shared memory ahead of submit; a submit with other arrays (equal or not)
     sends its own, so a stale preparation never answers another job. Both wait for the next flush (busy, done,
@@ -181,6 +183,7 @@ def test_a_prepared_job_is_the_job_submitted_with_those_very_arrays():
     assert abs(got_a.mean[0] - 1.0) < 0.1 and abs(got_b.mean[0] - 0.4) < 0.1
 
 
+@pytest.mark.slow
 def test_a_job_that_cannot_be_sent_fails_alone():
     """A job whose windows cannot be sent (here: not picklable, queued behind another) raises at the flush that tries
     it, and its result() raises at once instead of waiting for an answer that never comes; the job before it and
@@ -202,6 +205,7 @@ def test_a_job_that_cannot_be_sent_fails_alone():
         assert abs(worker.submit(there._estimate, q_a, tau_a).result()[0].mean[0] - 1.0) < 0.1
 
 
+@pytest.mark.slow
 def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
     from robot.worker import EstimatorSpec, ProcessWorker, make_worker
     with pytest.raises(ValueError, match="weights"):
@@ -219,6 +223,7 @@ def test_process_worker_refuses_bad_specs_and_other_functions(tmp_path):
             worker.submit(print, 1)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc and Linux scheduling policies")
 def test_the_worker_process_runs_one_thread_below_the_loop():
     """Every thread of the worker yields to the loop: one thread (no BLAS helper threads, which would keep the normal
@@ -231,6 +236,7 @@ def test_the_worker_process_runs_one_thread_below_the_loop():
 
 
 
+@pytest.mark.slow
 def test_a_load_centred_below_the_flange_is_held_then_estimated_by_the_worker_process():
     """The press hold with the estimates in a worker process, as on a robot: 1 kg 5 cm straight below the flange at
     the hold pose is held at its detection and estimated once it has lasted hold_axial (2.5 s), at rest."""
