@@ -7,6 +7,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import lapack
@@ -18,11 +19,35 @@ from dynamics import Robot, as_states
 from error_model import ErrorModel, as_error_model
 from motion.tool_forms import load_tool, phi_of_tool
 from nn_numpy import WEIGHTS, MismatchNet
-from rme_settings import Estimate, RMESettings, faulty
+from rme_settings import RMESettings, faulty
 from rme_levels import LevelMap, Levels
 from rme_stream import Streaming
 
 __all__ = ["RME", "RMESettings", "Estimate", "ErrorModel"]
+
+
+@dataclass
+class Estimate:
+    """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""
+    mean: np.ndarray               # (4,)
+    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (vi.noise_from_window)
+    cov: np.ndarray                # (4, 4) that covariance
+    prior: np.ndarray              # (4,) the prior mean VI started from (network output, zeros, or the broad one)
+    observed: np.ndarray           # (4,) bool: the window(s) observed it (std well below the prior's; else the prior)
+    seconds: float                 # wall time of network + VI
+    iterations: int
+    converged: bool
+    t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
+    explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
+    accepted: bool = True            # False: the change did not look like a payload and was not compensated
+    kind: str = "window"             # "detection", "at rest" (once the arm is still), "withdrawn" (back to the
+                                     #   estimate before a change found at rest to be no payload), "monitor"
+                                     #   (the compensation no longer explained tau_ext at rest) or "window"
+    applied: float = float("nan")    # stream time the compensation started using it (update only)
+    reason: str = ""                 # why it was not applied, or applied only later (update only)
+    prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
+                                     #   "broad" (every plausible payload): for an absolute window, or where a
+                                     #   referred window's evidence says the network's prior conflicts with it
 
 
 class RME(Streaming):

@@ -1,5 +1,5 @@
-"""What the pipeline (rme.py) is told and what it returns: RMESettings, the streaming estimator's settings, and
-Estimate, one posterior over the payload. rme re-exports both."""
+"""What the pipeline (rme.py) is told: RMESettings, the streaming estimator's settings (rme re-exports it), and
+faulty, which tau_ext samples are sensor faults."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -118,27 +118,3 @@ def faulty(tau_ext, limit=RMESettings.max_abs_torque) -> bool:
     """Whether a tau_ext sample (n,) is a sensor fault, not a load: not finite, or a joint beyond `limit` [Nm]
     (RME drops it; the robot loop hands its controller the last good sample instead)."""
     return not np.abs(tau_ext).max() <= limit         # (NaN compares False)
-
-
-@dataclass
-class Estimate:
-    """One RME estimate: the posterior over theta = (m [kg], rx, ry, rz [m] in the ee frame)."""
-    mean: np.ndarray               # (4,)
-    std: np.ndarray                # (4,) marginal std of the Laplace covariance at the mean (vi.noise_from_window)
-    cov: np.ndarray                # (4, 4) that covariance
-    prior: np.ndarray              # (4,) the prior mean VI started from (network output, zeros, or the broad one)
-    observed: np.ndarray           # (4,) bool: the window(s) observed it (std well below the prior's; else the prior)
-    seconds: float                 # wall time of network + VI
-    iterations: int
-    converged: bool
-    t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
-    explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
-    accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection", "at rest" (once the arm is still), "withdrawn" (back to the
-                                     #   estimate before a change found at rest to be no payload), "monitor"
-                                     #   (the compensation no longer explained tau_ext at rest) or "window"
-    applied: float = float("nan")    # stream time the compensation started using it (update only)
-    reason: str = ""                 # why it was not applied, or applied only later (update only)
-    prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
-                                     #   "broad" (every plausible payload): for an absolute window, or where a
-                                     #   referred window's evidence says the network's prior conflicts with it

@@ -3,11 +3,12 @@ the arm rests after it, for a change held while it may be a press on the hand, a
 a steady level the compensation does not explain (rme_levels: the residual levels by pose that the monitor keeps)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 import vi
 from detector import PAYLOAD_SIDE, payload_like, safe_theta, steady_prefix, through_flange
-from rme_settings import Estimate
 
 
 class Streaming:
@@ -150,9 +151,9 @@ class Streaming:
         def then(e, Y):
             if e.accepted or (why is None and self._plausible(e.mean)) or np.array_equal(self.theta, before):
                 return
-            w = Estimate(mean=np.array(before, dtype=float), std=np.zeros(4), cov=np.zeros((4, 4)), prior=e.prior,
-                         observed=np.zeros(4, dtype=bool), seconds=0.0, iterations=0, converged=True)
-            w.t, w.kind, w.accepted = e.t, "withdrawn", True
+            w = dataclasses.replace(e, mean=np.array(before, dtype=float), std=np.zeros(4), cov=np.zeros((4, 4)),
+                                    observed=np.zeros(4, dtype=bool), seconds=0.0, iterations=0, converged=True,
+                                    kind="withdrawn", accepted=True, explained=float("nan"), applied=float("nan"))
             w.reason = why or f"at rest the change is no payload ({e.reason}): back to the estimate before it"
             self.history.append(w)
             self._pending = [self._k, w, None, None]

@@ -7,7 +7,7 @@ pytest.importorskip("matplotlib")
 
 from experiments.figures import Mark, applied_steps, cycle_panel, demo_figure, log_figure, spans  # noqa: E402
 from experiments.runner import Record  # noqa: E402
-from rme_settings import Estimate  # noqa: E402
+from rme import Estimate  # noqa: E402
 
 
 def estimate(t, applied, mean, kind="detection", accepted=True, reason="", rz_seen=False):

@@ -8,7 +8,7 @@ import pytest
 from experiments import cli
 from experiments.scenarios import print_estimates
 from experiments.timing_tools import print_table
-from rme_settings import Estimate
+from rme import Estimate
 
 
 def estimate(t, applied, kind, accepted=True, reason="", rz_seen=False):
