@@ -203,17 +203,17 @@ class RME(Streaming):
         em, s = self.error_model, self.settings
         bias = [em.referred if r else em.absolute_cov for r in referred] if many else \
             (em.referred if referred else em.absolute_cov)
-        if np.all(referred):
-            sp = None if self.net is None else self.net.prior_std(prior, s.vi.sigma_prior, R[-1])
-            post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias,
-                          sigma_prior=sp, alternative=None if self.net is None else self._broad)
-        else:
-            prior, sp = self._broad[:2]
-            post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias, sigma_prior=sp)
-            post.prior = "broad"
+        if network:                                    # the network's prior, checked against the broad one
+            sp, alternative = self.net.prior_std(prior, s.vi.sigma_prior, R[-1]), self._broad
+        elif np.all(referred):                         # no weights: the zero prior mean with the paper's widths
+            sp, alternative = None, None
+        else:                                          # an absolute window: the broad prior
+            (prior, sp), alternative = self._broad[:2], None
+        post = vi.fit(Ys if many else Ys[0], tau, prior, s.vi, self.rng, speed=speed, bias_std=bias, sigma_prior=sp,
+                      alternative=alternative)
         e = Estimate(post.mean, post.marginal_std, post.cov, post.prior_mean, post.observed,
                      time.perf_counter() - start, post.iterations, post.converged)
-        e.prior_source = post.prior
+        e.prior_source = post.prior if np.all(referred) else "broad"
         return e, np.vstack([
             Ys[-1].mean(axis=0), np.einsum("tij,tik->jk", Ys[-1], Ys[-1]), (tau[-1] if many else tau).ravel() @
             Ys[-1].reshape(-1, 4)])
@@ -241,9 +241,10 @@ class RME(Streaming):
         # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
         _, R, J = self.robot.kinematics(q)                            # one kinematics pass per sample
         Y = self.robot.payload_regressor_from(J, R)
-        tool = Y @ self._tool_phi                                      # the known tool's weight (0 without one)
-        tau = tau - tool
-        self._tau[i] = tau
+        tool = None
+        if self.tool is not None:                                      # the known tool's weight: not RME's to find
+            tool = Y @ self._tool_phi
+            tau = self._tau[i] = tau - tool
         tau_mm = Y @ self._phi
         r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
         self._r[i] = r if self.correction is None or np.isfinite(r).all() else tau - tau_mm
@@ -290,7 +291,8 @@ class RME(Streaming):
         if self._queued is not None and self._job is None and self._steps is None and self._pending is None:
             asked, self._queued = self._queued, None   # under the compensation just applied
             self._on_detection(asked)
-        self._last = np.minimum(np.maximum(-tau_mm - tool, -self._limit), self._limit)
+        comp = -tau_mm if tool is None else -tau_mm - tool
+        self._last = np.minimum(np.maximum(comp, -self._limit), self._limit)
         return self._last
 
     def _plausible(self, theta) -> bool:
