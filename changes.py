@@ -1,0 +1,204 @@
+"""One model of what changed at the flange (docs/streaming.md): the residual r = tau_ext - Y(q) phi_hat is
+r = b(q) + Y(q) dphi + J(q)^T w + e, and over {noise, payload, wrench, back to an earlier payload} the model keeps
+closed-form Gaussian posterior probabilities from which the streaming estimator decides. No MuJoCo in here."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.special import log_ndtr
+
+import checks
+
+HYPOTHESES = ("noise", "payload", "wrench", "back")
+
+
+@dataclass(frozen=True)
+class ChangeSettings:
+    """What the residual holds besides a change, and what a change may be. Sources in docs/streaming.md."""
+    short: int = 40                 # samples (40 ms) of the level compared with the reference
+    rest_noise: tuple = (0.015,) * 4 + (0.004,) * 3   # Nm: std of a `short`-sample mean of tau_ext at rest per joint
+                                    #   (realistic plant: 1.5-16 mNm); the start value of what the stream learns
+                                    #   from its own calm stretches
+    friction: tuple = (1.0,) * 4 + (0.5,) * 3   # Nm: friction a moving joint leaves in tau_ext (Gaz et al. 2019's
+                                    #   sigmoid amplitudes: 0.5-1.2 Nm), not averaging down
+    friction_speed: float = 0.03    # rad/s: friction reaches that level at this speed (Gaz et al.: p3 0.02-0.04)
+    model_error: float = 0.1        # share of the links' gravity torque the robot model misses (link masses within
+                                    #   8 %, CoMs within 2 cm on the realistic preset): the level moves with the pose
+    push_force: float = 30.0        # N: std of each component of a person's push (pushes of 5-60 N)
+    push_arm: float = 0.1           # m: lever of a push about the flange (a hand on the gripper or the tool)
+    detect: float = 24.3            # chi^2 of the level's departure from the reference that opens a judgement
+                                    #   (chi2.isf(1e-3, 7): one false start a second at rest)
+    confidence: float = 0.99        # posterior probability of the best hypothesis to act on; below it, wait
+
+    def __post_init__(self):
+        c = checks
+        c.number("changes.short", self.short, "5..500", "samples")
+        for name in ("rest_noise", "friction"):
+            c.array(f"changes.{name}", getattr(self, name), (len(getattr(self, name)),), "(0, 100]", "Nm")
+        c.number("changes.friction_speed", self.friction_speed, "(0, 10]", "rad/s")
+        c.number("changes.model_error", self.model_error, "[0, 1]", "(a share)")
+        c.number("changes.push_force", self.push_force, "(0, 1e4]", "N")
+        c.number("changes.push_arm", self.push_arm, "(0, 10]", "m")
+        c.number("changes.detect", self.detect, "(0, 1e6]", "(chi^2)")
+        c.number("changes.confidence", self.confidence, "(0.5, 1)", "(a probability)")
+
+
+@dataclass
+class Reference:
+    """The level the compensation is judged against: the residual (n,) left when it was right (the robot's bias b
+    there), at pose q (n,), with the joints' friction shares (n,) then and the gravity torque's gradient (n, n)."""
+    level: np.ndarray
+    q: np.ndarray
+    friction: np.ndarray
+    gradient: np.ndarray
+
+
+@dataclass
+class Verdict:
+    """A judgement of the level d (n,) [Nm] away from the reference: each hypothesis' posterior probability, the
+    best, and for "back" the earlier payload phi (4,) it returns to; payload: the posterior mean of the new phi."""
+    d: np.ndarray
+    posterior: dict
+    best: str
+    phi: np.ndarray | None = None
+
+    @property
+    def sure(self) -> float:
+        return self.posterior[self.best]
+
+
+@dataclass
+class Payloads:
+    """Payload priors in phi = (m, m r) [kg, kg m] (ee frame): a new payload ~ N(mean, diag(std^2)) inside the box
+    0 <= m <= max_mass; earlier: the payloads compensated before (phi (4,) each, newest last), each a hypothesis."""
+    mean: np.ndarray
+    std: np.ndarray
+    max_mass: float
+    max_com: float
+    earlier: list = field(default_factory=list)
+
+    @staticmethod
+    def plausible(max_mass: float, max_com: float) -> "Payloads":
+        m = max_mass / 2                 # every payload the arm carries: m about half the rating, CoM to max_com
+        return Payloads(np.array([m, 0, 0, 0]), np.array([m, m * max_com, m * max_com, m * max_com]), max_mass,
+                        max_com)
+
+    def remember(self, phi, keep: int = 3):
+        phi = np.array(phi, dtype=float)
+        self.earlier = [p for p in self.earlier if np.abs(p - phi).max() > 1e-9][-(keep - 1):] + [phi]
+
+
+def gaussian_log_pdf(x, C) -> float:
+    """log N(x; 0, C) for x (n,), C (n, n) positive definite."""
+    f = cho_factor(C, lower=True, check_finite=False)
+    return float(-0.5 * x @ cho_solve(f, x, check_finite=False) - np.log(np.diag(f[0])).sum()
+                 - 0.5 * len(x) * math.log(2 * math.pi))
+
+
+class ChangeModel:
+    """The level of the residual r (n,) over the last `short` samples against the reference, its noise, and the
+    posterior over what moved it. push(r, dq) each sample; judge(...) when departure() > settings.detect."""
+
+    def __init__(self, settings: ChangeSettings, n: int, keep: int = 500):
+        self.s, self.n = settings, n
+        self._r, self._v, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, |dq|; samples
+        self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
+        self.reference: Reference | None = None
+
+    # --- the stream ------------------------------------------------------------------------------
+    def push(self, r, dq):
+        i = self._k % len(self._r)
+        self._r[i], self._v[i] = r, np.abs(dq)
+        self._k += 1
+
+    def mean(self, L: int, back: int = 0, of=None):
+        """Mean (n,) of the L samples ending `back` samples ago (of: the ring, default r)."""
+        x, N = self._r if of is None else of, len(self._r)
+        idx = np.arange(self._k - back - L, self._k - back) % N
+        return x[idx].mean(axis=0)
+
+    def window(self, L: int) -> np.ndarray:
+        """The last L residual samples (L, n), oldest first."""
+        return self._r[np.arange(self._k - L, self._k) % len(self._r)]
+
+    def shift(self, d):
+        """The compensation changed by d (n,): every sample held is re-expressed as its residual under it."""
+        self._r -= d
+
+    def friction(self, speed) -> np.ndarray:
+        """Each joint's friction share (n,) at joint speeds (n,): 0 at rest, 1 in motion."""
+        return np.tanh(np.asarray(speed) / self.s.friction_speed)
+
+    def learn_noise(self):
+        """At rest with nothing changing: the spread of consecutive short means updates the noise (Nm^2, n)."""
+        S = self.s.short
+        u = self.mean(S) - self.mean(S, S)
+        floor = np.array(self.s.rest_noise[:self.n]) ** 2 / 4
+        self.noise = np.maximum(0.99 * self.noise + 0.01 * u * u / 2, floor)
+
+    def set_reference(self, level, q, gradient):
+        S = self.s.short
+        self.reference = Reference(np.array(level, dtype=float), np.array(q, dtype=float),
+                                   self.friction(self.mean(S, of=self._v)), np.array(gradient, dtype=float))
+
+    def covariance(self, q) -> np.ndarray:
+        """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
+        noise and the reference's, friction in motion now and then, the level still moving, the robot model's error
+        carried along the pose change since the reference (model_error of the gravity torque's change)."""
+        s, ref, S = self.s, self.reference, self.s.short
+        fric = np.array(s.friction[:self.n]) ** 2 * (self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2)
+        moving = self.mean(S) - self.mean(S, S)                       # how far the level moved over the last S
+        g = s.model_error * ref.gradient @ (np.asarray(q) - ref.q)
+        C = np.outer(g, g)
+        C.flat[::self.n + 1] += 2 * self.noise + fric + moving * moving
+        return C
+
+    def departure(self, q) -> float:
+        """chi^2 of the short level's departure from the reference under `covariance` (diagonal part)."""
+        d = self.mean(self.s.short) - self.reference.level
+        return float(d @ (d / np.diag(self.covariance(q))))
+
+    # --- the judgement -----------------------------------------------------------------------------
+    def judge(self, Y, J, phi, q, payloads: Payloads) -> Verdict:
+        """Posterior over the hypotheses for the level now (equal prior odds): noise (and bias), a new payload
+        (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
+        ~ N(0, (push_force push_arm)^2) per axis), back to each earlier payload (no free parameter).
+        Y (n, 4): the payload regressor at q; J (6, n): the flange's world Jacobian; phi (4,): compensated now."""
+        s, n = self.s, self.n
+        d = self.mean(s.short) - self.reference.level
+        V = self.covariance(q)
+        logs = {"noise": gaussian_log_pdf(d, V)}
+        P = np.diag(payloads.std ** 2)
+        C = Y @ P @ Y.T + V
+        f = cho_factor(C, lower=True, check_finite=False)
+        e = d - Y @ (payloads.mean - phi)
+        K = P @ Y.T
+        new = payloads.mean + K @ cho_solve(f, e, check_finite=False)            # posterior of phi_new
+        cov = P - K @ cho_solve(f, K.T, check_finite=False)
+        logs["payload"] = float(-0.5 * e @ cho_solve(f, e, check_finite=False) - np.log(np.diag(f[0])).sum()
+                                - 0.5 * n * math.log(2 * math.pi)) + self._box(new[0], cov[0, 0], payloads) \
+            - self._box(payloads.mean[0], P[0, 0], payloads)
+        if new[0] >= 0.1 and np.abs(new[1:]).max() > payloads.max_com * new[0]:
+            logs["payload"] = -np.inf                                  # a CoM beyond any hand's reach: no payload
+        W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
+        logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)
+        backs = [(gaussian_log_pdf(d - Y @ (p - phi), V), p) for p in payloads.earlier + [np.zeros(4)]
+                 if np.abs(p - phi).max() > 1e-6]
+        back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None)
+        logs["back"] = back[0]
+        top = max(logs.values())
+        w = {h: math.exp(v - top) for h, v in logs.items()}
+        total = sum(w.values())
+        post = {h: w[h] / total for h in HYPOTHESES}
+        best = max(post, key=post.get)
+        return Verdict(d, post, best, back[1] if best == "back" else new if best == "payload" else None)
+
+    @staticmethod
+    def _box(mean, var, p: Payloads) -> float:
+        """log of the Gaussian's mass (mean, var) of the mass inside [0, max_mass]."""
+        sd = math.sqrt(max(var, 1e-18))
+        hi, lo = log_ndtr((p.max_mass - mean) / sd), log_ndtr((0.0 - mean) / sd)
+        return float(hi + math.log1p(-math.exp(min(lo - hi, -1e-300)))) if lo < hi else -np.inf

@@ -1,0 +1,147 @@
+"""changes.ChangeModel on synthetic residuals with a known cause (no MuJoCo): a payload step, a push and its release,
+a press through the flange, a bias drift with the pose; each hypothesis' evidence against a direct evaluation."""
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+
+from changes import ChangeModel, ChangeSettings, Payloads, gaussian_log_pdf
+
+G = np.array([0.0, 0.0, -9.81])
+N = 7
+
+
+def skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def arm(rng):
+    """A random full-rank flange Jacobian J (6, n), a rotation R, and the payload regressor Y (n, 4) they imply
+    (tau = Jv^T m g + Jw^T ((R m r) x m g)): a stand-in for a pose of a 7-joint arm."""
+    J = rng.normal(size=(6, N)) * np.array([0.5] * 3 + [1.0] * 3)[:, None]
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    Y = np.empty((N, 4))
+    Y[:, 0] = G @ J[:3]
+    Y[:, 1:] = -J[3:].T @ (skew(G) @ R)
+    return J, R, Y
+
+
+def stream(model, rng, levels, noise=0.01):
+    """Push len(levels) samples: level (n,) plus white noise of `noise` Nm per joint, at rest."""
+    for level in levels:
+        model.push(level + noise * rng.normal(size=N), np.zeros(N))
+
+
+def fresh(rng, samples=200, settings=ChangeSettings()):
+    m = ChangeModel(settings, N)
+    bias = rng.normal(0, 0.3, N)
+    stream(m, rng, [bias] * samples)
+    m.set_reference(m.mean(2 * settings.short), np.zeros(N), np.zeros((N, N)))
+    return m, bias
+
+
+def verdict(rng, change, phi=np.zeros(4), earlier=(), trials=20):
+    """The best hypothesis for each of `trials` fresh arms after the residual steps by change(J, R, Y) (n,)."""
+    best = []
+    for _ in range(trials):
+        J, R, Y = arm(rng)
+        m, bias = fresh(rng)
+        stream(m, rng, [bias + change(J, R, Y)] * 120)
+        p = Payloads.plausible(3.0, 0.3)
+        p.earlier = [np.array(e, dtype=float) for e in earlier]
+        v = m.judge(Y, J, phi, np.zeros(N), p)
+        best.append((v.best, v.sure))
+    return best
+
+
+def test_a_payload_step_is_a_payload():
+    rng = np.random.default_rng(1)
+    for m_kg in (0.2, 1.0, 2.5):
+        r = rng.uniform(-0.1, 0.1, 3)
+        res = verdict(rng, lambda J, R, Y: Y @ np.r_[m_kg, m_kg * r])
+        assert all(b == "payload" and p > 0.99 for b, p in res), (m_kg, res)
+
+
+def test_a_sideways_push_is_a_wrench_and_its_release_is_noise():
+    rng = np.random.default_rng(2)
+    def push(J, R, Y):
+        f = rng.normal(size=3)
+        f[:2] *= 8 / np.linalg.norm(f[:2])                # at least 8 N sideways
+        return J.T @ np.r_[f, 0, 0, 0]
+    assert all(b == "wrench" and p > 0.99 for b, p in verdict(rng, push))
+    J, R, Y = arm(rng)                                     # released: the level is back at the reference
+    m, bias = fresh(rng)
+    stream(m, rng, [bias] * 100)
+    assert m.judge(Y, J, np.zeros(4), np.zeros(N), Payloads.plausible(3.0, 0.3)).best == "noise"
+
+
+def test_a_press_through_the_flange_looks_like_a_centred_load_and_its_release_goes_back():
+    """At rest the torques of a press straight down at the flange and a load centred below it are the same: the
+    model takes the simpler payload; once it is compensated, the release returns to the payload before."""
+    rng = np.random.default_rng(3)
+    press = lambda J, R, Y: J.T @ np.r_[0, 0, -20.0, 0, 0, 0]
+    assert all(b == "payload" for b, p in verdict(rng, press))
+    phi = np.array([20 / 9.81, 0, 0, 0])                   # the press compensated as a 2 kg load: its release
+    res = verdict(rng, lambda J, R, Y: -Y @ phi, phi=phi, earlier=[np.zeros(4)])    # leaves -Y phi
+    assert all(b == "back" and p > 0.99 for b, p in res), res
+
+
+def test_a_removal_returns_to_no_payload_and_a_push_up_with_nothing_held_is_no_payload():
+    rng = np.random.default_rng(4)
+    phi = np.array([1.5, 0.03, 0.0, 0.1])
+    assert all(b == "back" for b, _ in verdict(rng, lambda J, R, Y: -Y @ phi, phi=phi))
+    up = verdict(rng, lambda J, R, Y: J.T @ np.r_[0, 0, 25.0, 0, 0, 0])            # no negative mass
+    assert all(b == "wrench" for b, _ in up), up
+
+
+def test_a_bias_drift_along_the_pose_is_noise():
+    """The level moved by the model error's share of the gravity torque's change over a pose change: noise."""
+    rng = np.random.default_rng(5)
+    s = ChangeSettings()
+    for _ in range(20):
+        J, R, Y = arm(rng)
+        m, bias = fresh(rng)
+        grad = rng.normal(0, 20, (N, N))                     # d G / d q (Nm/rad)
+        m.reference.gradient = grad
+        dq = rng.normal(0, 0.05, N)
+        stream(m, rng, [bias + 0.5 * s.model_error * grad @ dq] * 120)
+        assert m.judge(Y, J, np.zeros(4), dq, Payloads.plausible(3.0, 0.3)).best == "noise"
+
+
+def test_each_evidence_matches_a_direct_gaussian():
+    """The noise, wrench and back evidences against scipy's multivariate normal; the payload's (no box) against
+    the Gaussian marginal of d = Y (phi_new - phi) + e."""
+    rng = np.random.default_rng(6)
+    J, R, Y = arm(rng)
+    m, bias = fresh(rng)
+    stream(m, rng, [bias + Y @ np.r_[1.0, 0.02, 0.01, 0.05]] * 100)
+    d = m.mean(m.s.short) - m.reference.level
+    V = m.covariance(np.zeros(N))
+    assert gaussian_log_pdf(d, V) == pytest.approx(multivariate_normal(np.zeros(N), V).logpdf(d), rel=1e-9)
+    p = Payloads(np.array([30.0, 0, 0, 0]), np.array([5.0, 0.2, 0.2, 0.2]), 1e6, 0.3)   # a box that never binds
+    v = m.judge(Y, J, np.zeros(4), np.zeros(N), p)
+    logs = {"noise": multivariate_normal(np.zeros(N), V).logpdf(d),
+            "payload": multivariate_normal(Y @ p.mean, Y @ np.diag(p.std ** 2) @ Y.T + V).logpdf(d),
+            "wrench": multivariate_normal(np.zeros(N), J.T @ np.diag([900.0] * 3 + [9.0] * 3) @ J + V).logpdf(d),
+            "back": -np.inf}
+    top = max(logs.values())
+    w = {h: np.exp(x - top) for h, x in logs.items()}
+    for h in logs:
+        assert v.posterior[h] == pytest.approx(w[h] / sum(w.values()), abs=1e-9)
+
+
+def test_the_noise_is_learned_from_calm_stretches():
+    rng = np.random.default_rng(7)
+    s = ChangeSettings()
+    m = ChangeModel(s, N)
+    true = np.full(N, 0.02)                                 # a noisier sensor than the start value
+    for _ in range(600):
+        stream(m, rng, [np.zeros(N)] * s.short, noise=true[0] * np.sqrt(s.short))   # means of std 0.02 Nm
+        m.learn_noise()
+    assert np.sqrt(m.noise) == pytest.approx(true, rel=0.25)
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="changes.confidence"):
+        ChangeSettings(confidence=1.0)
+    with pytest.raises(ValueError, match="changes.short"):
+        ChangeSettings(short=2)
