@@ -257,62 +257,6 @@ class Detector:
         return fired
 
 
-def steady_prefix(R, first, last, band=0.25, span=10) -> int:
-    """How many leading samples of R (T, n) share the level of the first `first` (at least `first`, at most `last`):
-    up to `span` samples before the first run of `span` samples whose mean leaves that level by more than `band` [Nm].
-    The longer the reference a change is referred to, the less its noise (0.1-0.15 Nm per sample on a Panda's J2-J4:
-    30 samples leave 0.02-0.03 Nm, 5-10 g of a payload's mass)."""
-    c = R.cumsum(axis=0)
-    runs = c[span - 1:].copy()                                   # sums of the runs starting at each sample
-    runs[1:] -= c[:-span]
-    runs -= span * c[first - 1] / first                          # less the level of the first samples
-    off = np.einsum("ij,ij->i", runs, runs)[first:] > (span * band) ** 2
-    k = first + int(off.argmax()) if off.any() else len(runs)
-    return int(min(max(k - span, first), last))
-
-
-PAYLOAD_SIDE = (0.5, 0.12)   # (N, share): a payload's force is gravity's, vertical; the horizontal part of a change's
-                             #   wrench may reach 0.5 N + 12 % of the force (the loaded arm's sag and the links'
-                             #   model errors leave up to 8 % on the realistic plant; a push leaves its own direction)
-
-
-def payload_like(Y, d, mass, gate, J=None, max_total=np.inf, side=PAYLOAD_SIDE) -> bool:
-    """Whether a torque change d (n,) at a pose with payload regressor Y (n, 4) looks like a payload change: least
-    squares d ~ Y dphi explains at least `gate` of it and leaves a total mass (`mass` now + dm) in [-max(0.05 kg,
-    15 % of `mass`), max_total] (a removal may read a little heavier than the estimate it undoes; with nothing
-    compensated, a change to a mass <= 0 leaves nothing to estimate); with the world
-    Jacobian J (6, n), the wrench W that J^T W = d asks for also has a nearly vertical force (side: (floor [N],
-    share), |F_xy| <= floor + share |F|), since gravity pulls straight down whatever the CoM."""
-    dphi = _least_squares(Y, d)
-    e = d - Y @ dphi
-    explained = 1.0 - (e @ e) / max(float(d @ d), 1e-12)
-    if not (explained >= gate and (-max(0.05, 0.15 * mass) if mass > 0 else 0.0) < mass + dphi[0] <= max_total):
-        return False
-    if J is None:
-        return True
-    F = pseudo_wrench(J, d, 1e-9, check=False)[:3]              # J^T W = d, least squares (a hair of damping)
-    return bool(math.hypot(F[0], F[1]) <= side[0] + side[1] * math.sqrt(F @ F))
-
-
-def through_flange(J, d, radius, floor=0.01) -> bool:
-    """Whether a torque change d (n,) at a pose with the flange's world Jacobian J (6, n) adds a downward force whose
-    line passes within `radius` [m] of the flange: |M| <= floor [Nm] + radius |F| for the wrench J^T W = d. To the
-    joint torques a person pressing straight down on the hand and a load centred below the flange are the same.
-    An arm of fewer than 6 joints does not determine W: False."""
-    if J.shape[1] < 6:
-        return False                                            # fewer joints than wrench components: no telling
-    W = pseudo_wrench(J, d, 1e-9, check=False)
-    return bool(W[2] < 0 and math.sqrt(W[3:] @ W[3:]) <= floor + radius * math.sqrt(W[:3] @ W[:3]))
-
-
-def _least_squares(A, d):
-    """x minimising |A x - d| for a tall A (m, k) through its normal equations with a ridge of 1e-10 of their trace
-    (A's rank may fall short: a payload's rz at a static pose; the fit A x is what counts there)."""
-    N = A.T @ A
-    N.flat[::N.shape[0] + 1] += 1e-10 * N.trace() + 1e-300
-    return np.linalg.solve(N, A.T @ d)
-
-
 def safe_theta(new, old, max_mass):
     """The estimate to compensate: finite, mass in [0, max_mass], CoM within 1 m; otherwise keep the current one."""
     new = np.asarray(new, dtype=float)

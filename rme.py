@@ -7,6 +7,7 @@ import math
 import os
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,14 +15,13 @@ from scipy.linalg import lapack
 
 import checks
 import vi
+from changes import ChangeModel, Payloads
 from detector import Detector, safe_theta
-from dynamics import Robot, as_states
+from dynamics import Robot, as_states, phi_of
 from error_model import ErrorModel, as_error_model
 from motion.tool_forms import load_tool, phi_of_tool
 from nn_numpy import WEIGHTS, MismatchNet
 from rme_settings import RMESettings, faulty
-from rme_levels import LevelMap, Levels
-from rme_stream import Streaming
 
 __all__ = ["RME", "RMESettings", "Estimate", "ErrorModel"]
 
@@ -40,9 +40,9 @@ class Estimate:
     t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection", "at rest" (once the arm is still), "withdrawn" (back to the
-                                     #   estimate before a change found at rest to be no payload), "monitor"
-                                     #   (the compensation no longer explained tau_ext at rest) or "window"
+    kind: str = "window"             # "detection" (the model found a new payload), "at rest" (the same change
+                                     #   again once the arm is still), "back" (the level returned to what an
+                                     #   earlier payload leaves: that payload again, no window estimated) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied, or applied only later (update only)
     prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
@@ -50,10 +50,24 @@ class Estimate:
                                      #   referred window's evidence says the network's prior conflicts with it
 
 
-class RME(Streaming):
+@dataclass
+class _Due:
+    """An estimate decided on, of `kind`: applied from sample `at`; refine: estimate again once the arm is still (its
+    window was taken in motion, friction in it) against `level`; job: the executor's future while it runs."""
+    estimate: Estimate | None
+    at: int
+    kind: str
+    refine: bool = False
+    level: np.ndarray | None = None
+    job: object = None
+    phi_cov: np.ndarray | None = None    # for "back": the covariance (4, 4) of the earlier phi restored
+
+
+class RME:
     """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
-    use, returning the compensation torque (7,) to add to the controller's torque. executor (ours): runs each streamed
-    estimate beside the loop, applied once update finds it done (settings.asynchronous moot); None: within update.
+    use, returning the compensation torque (7,) to add to the controller's torque. Streaming decisions come from one
+    model of what changed (changes.py, docs/streaming.md). executor (ours): runs each streamed estimate beside the
+    loop, applied once update finds it done (settings.asynchronous moot); None: within update.
     calibration: the robot's error model (error_model.ErrorModel, or the JSON of `python rme.py calibrate LOG --save`;
     None: an uncalibrated Panda), which says how far tau_ext may stray from the payload's torque in a window taken
     as it is (absolute) and in one referred to the level before a change.
@@ -72,58 +86,56 @@ class RME(Streaming):
                              f"{len(self.error_model.absolute)} ({self.error_model.source})")
         self.tool = None if tool is None else load_tool(tool)        # ValueError naming what is wrong
         self._tool_phi = np.zeros(4) if tool is None else phi_of_tool(self.tool)   # (m, m c) in the ee frame
-        self.settings = checks.instance("settings", settings, RMESettings)
+        self.settings = s = checks.instance("settings", settings, RMESettings)
         self.correction = None if correction is None else checks.has_methods("correction", correction, "correction")
         self.executor = executor if executor is None else checks.has_methods("executor", executor, "submit")
-        self._job, self._queued, self._steps = None, None, None   # (future, request, sample, received) in flight;
-                                                       #   a request; (generator, sample): a detection's steps
         self.rng = np.random.default_rng(0) if rng is None else checks.generator("rng", rng)
         if not (weights is None or isinstance(weights, (str, os.PathLike))):
             raise ValueError(f"weights: expected a weights file's path or None, found {weights!r:.60}")
-        self.net = MismatchNet.load(weights) if settings.use_network and weights is not None else None  # or ValueError
-        self.detector = Detector(settings.detector, n=self.robot.n)
-        n, keep = self.robot.n, settings.detector.window
+        self.net = MismatchNet.load(weights) if s.use_network and weights is not None else None  # or ValueError
+        n = self.robot.n
+        self.detector = None if s.detector is None else Detector(s.detector, n=n)   # Algorithm 1 instead of the model
+        keep = max(s.window, 2 * s.changes.short, 0 if s.detector is None else s.detector.window)
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
-        self._r = np.zeros((keep, n))                  # ring of residuals tau_ext - tau_mm(q, theta) (- correction)
         self._k = 0                                    # samples seen
-        self._fq, self._P = np.full(n, np.inf), None   # the pose (1e-3 rad) of the pseudo-force map P (3, n)
+        self.model = ChangeModel(s.changes, n, keep)   # the residual's level, its reference, the posterior
+        self.payloads = Payloads.plausible(s.max_mass, s.max_com)   # what a new payload may be; the earlier ones
+        self._fq, self._P = np.full(n, np.inf), None   # Algorithm 1's pseudo-force map P (3, n) and its pose
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
-        self.changes_not_payload, self.changes_held = 0, 0   # detections no payload explains (not estimated); held
-        self._held = None                              # the sample since which a change has been held (_held_back)
+        self.changes_not_payload = 0                   # departures the model judged an external wrench
+        self._due: _Due | None = None                  # an estimate decided on, running or waiting for its time
+        self._since = None                             # the sample the level first departed from the reference
+        self._wrench = False                           # that departure has been judged a wrench (counted once)
+        self._refused = None                           # the departure d (n,) whose estimate was not plausible
+        self._refine = None                            # the reference level an estimate at rest is owed against
+        self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
-        self._slow_rejected = LevelMap(settings.pose_tolerance, size=1)   # the level a slow arm's check estimated in vain
-        self._stays = LevelMap(settings.pose_tolerance, size=1)   # the level where a small load was found left (_gone)
-        self._evidence = []                            # (q, tau) windows of the compensated payload (accumulate)
-        self._lv = Levels(settings.pose_tolerance, settings.monitor_threshold)   # residual levels by pose
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta, self._phi = np.zeros(4), np.zeros(4)   # the estimate compensated; its phi = (m, m r) (1 kHz loop)
-        self._undo = None                              # (phi before the change theta answers, until): _on_line
-        self._pending = None                           # (sample index when it applies, Estimate, level, theta before)
-        self._refine, self._still, self._calm, self._slow = None, 0, 0, 0   # a pending estimate at rest; samples
-                                                       #   the arm has been still, slower than monitor_speed, than
-                                                       #   monitor_slow[0]
         self.history: list[Estimate] = []
-        c, m = settings.max_com, settings.max_mass                  # every plausible payload: a weak prior (1 sigma
-        self._broad = (np.array([m / 2, 0, 0, 0]), np.array([m / 2, c, c, c]),   # to the box's edge) truncated to
-                       np.array([0.0, -c, -c, -c]), np.array([m, c, c, c]))     # the box (vi.log_evidence)
+        self.verdicts = deque(maxlen=1000)             # (t, changes.Verdict): what the model judged, and why
+        c, m = s.max_com, s.max_mass                   # every plausible payload: a weak prior (1 sigma to the
+        self._broad = (np.array([m / 2, 0, 0, 0]), np.array([m / 2, c, c, c]),   # box's edge) truncated to the box
+                       np.array([0.0, -c, -c, -c]), np.array([m, c, c, c]))     # (vi.log_evidence)
         self._limit = self.robot.torque_limits()          # the compensation never asks for more than the drives give
 
     @property
     def settled(self) -> bool:
-        """Whether the stream has judged the first steady level it saw (the sensor's bias, or a load) and has no
-        estimate due, queued or in flight."""
-        return bool(len(self._lv.explained)) and self._pending is None and self._job is None and \
-            self._queued is None and self._steps is None and self._refine is None
+        """Whether the stream has its reference level and no change under judgement, estimate due or owed."""
+        return self.model.reference is not None and self._since is None and self._due is None and \
+            self._refine is None
+
+    @property
+    def active(self) -> bool:
+        """Whether the residual's level has departed from the reference and is being judged."""
+        return self._since is not None
 
     def expect_change(self, seconds: float = 2.0):
-        """The task expects a load change within `seconds` from now (it closes or opens the gripper): a change that
-        adds a force through the flange's line (a load centred below the hand, as a grasped object mostly is) is
-        then estimated at its detection (or by the monitor's check of a slow arm), not held as a possible press
-        (RMESettings.hold_axial). A person pressing on the hand meanwhile is taken for the load it looks like, as
-        with hold_axial = 0."""
+        """The task expects a load change within `seconds` from now (it closes or opens the gripper): until then the
+        payload hypothesis' prior odds are 10 to 1 (changes.EXPECTED), so a change the torques leave ambiguous is
+        taken for a load sooner."""
         checks.number("seconds", seconds, "[0, 3600]", "s")
-        self._expected = max(self._expected, self._k + 1 + int(round(seconds * self.settings.rate)))   # (a shorter
-                                                                                        #   call keeps a longer one)
+        self._expected = max(self._expected, self._k + 1 + int(round(seconds * self.settings.rate)))
 
     # --- one window ----------------------------------------------------------------------------
     def estimate(self, q, tau_ext, baseline=None, dq=None, referred: bool | None = None) -> Estimate:
@@ -222,10 +234,10 @@ class RME(Streaming):
     def update(self, q, dq, tau_ext) -> np.ndarray:
         """Feed one 1 kHz sample (paper sign tau_ext); returns the compensation torque (n,) = -tau_mm(q, theta_hat),
         never NaN nor beyond the torque limits. A non-finite or absurd sample (beyond max_abs_torque) is dropped and
-        counted in `dropped`. Estimates of the total payload come from the event detector (Alg. 1, on the residual
-        the estimate leaves) and, as a backstop, the consistency monitor: once the arm is calm with a steady residual
-        level, that level must stay within monitor_threshold of the level explained there, or RME estimates again."""
-        n, keep, s = self.robot.n, self.settings.detector.window, self.settings
+        counted in `dropped`. What the compensation leaves, r = tau_ext - Y(q) phi_hat, is compared with its reference
+        level; a departure is judged by the model of what changed (changes.ChangeModel): a new payload is estimated
+        (network + VI on the window referred to the reference), an earlier one restored, a wrench or noise waited out."""
+        n, s = self.robot.n, self.settings
         q, dq = as_states("q", q, n, allow_window=False)[0][0], as_states("dq", dq, n, allow_window=False)[0][0]
         tau = tau_ext if type(tau_ext) is np.ndarray and tau_ext.dtype == np.float64 else checks.real_array(tau_ext)
         if tau is None or tau.shape != (n,):             # (not finite: dropped below, as a sensor fault)
@@ -234,138 +246,158 @@ class RME(Streaming):
         if faulty(tau, s.max_abs_torque):
             self.dropped += 1                          # a sensor fault, not a load: never reaches the estimator
             return self._last
-        i = self._k % keep
-        self._q[i], self._dq[i], self._tau[i] = q, dq, tau
-        self._k += 1
-        # the detector watches what the current estimate does not explain, r = tau_ext - tau_mm(q, theta_hat):
-        # a known load carried to another pose changes tau_ext but not r (ours; Alg. 1 watches tau_ext itself)
         _, R, J = self.robot.kinematics(q)                            # one kinematics pass per sample
         Y = self.robot.payload_regressor_from(J, R)
         tool = None
         if self.tool is not None:                                      # the known tool's weight: not RME's to find
             tool = Y @ self._tool_phi
-            tau = self._tau[i] = tau - tool
-        tau_mm = Y @ self._phi
-        r = tau - tau_mm if self.correction is None else tau - tau_mm - self.correction.correction(q, dq)
-        self._r[i] = r if self.correction is None or np.isfinite(r).all() else tau - tau_mm
-        if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
-            A = J @ J.T                                                # (J J^T + lam I)^-1 J by Cholesky (LAPACK:
-            A.flat[::7] += s.detector.lam                              # a third of np.linalg.solve's time here)
-            _, PJ, bad = lapack.dposv(A, J)
-            self._fq, self._P = q, (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
-        if self.detector.push(self._r[i], self._P @ self._r[i]) and self._k >= keep:
-            if self._job is None and self._steps is None and (self.executor is None or self._pending is None):
-                self._on_detection()
-            else:                                      # formed once the job in flight is done (the newest wins)
-                self._queued = self._k
-        if self._steps is not None and self._steps[1] < self._k and next(self._steps[0], True):
-            self._steps = None                         # with an executor: one step per sample, from the next one
-        speed = np.abs(dq).max()
-        self._still = self._still + 1 if speed < s.rest_speed else 0
-        self._calm = self._calm + 1 if speed < s.monitor_speed else 0
-        self._slow = self._slow + 1 if speed < s.monitor_slow[0] else 0
-        if self._job is not None and self._job[2] < self._k:           # polled from the next sample on
-            if self._job[3]:                           # received on the sample before: judged now
-                (future, request, *_), self._job = self._job, None
-                self._judge(*request, *future.result())
-            elif self._job[0].done():
-                self._job = (*self._job[:3], True)
-        idle = self._pending is None and self._job is None and self._queued is None and self._steps is None
-        calm = self._calm >= s.monitor_window          # the monitor's checks, every 10th sample: of a calm arm, and
-        slow = not calm and self._slow >= s.window and not self.detector.active   # of a slow one (a change in the
-        check = s.monitor and idle and self._k % 10 == 0                            #   detector's window is its)
-        if self._refine is not None and idle:
-            r = self._refine                           # (a held change is estimated once it has lasted, moving or not)
-            if self._still >= s.window or (calm and self._k > r["deadline"] - s.rate / 2) or (r.get("held") and (
-                    self._k - r["since"] >= s.hold_axial * s.rate or self._k < self._expected)):   # or expected now
-                self._on_rest(Y, J)
-            elif self._k > r["deadline"] + 2 * s.refine_within * s.rate:
-                self._refine = self._held = None       # the arm never rested: the monitor checks it when it does
-            elif check and slow and not r.get("held"):
-                self._check_consistency(Y, J, moving=True)   # a change while the arm still creeps after the last one
-        elif check and (calm or slow):
-            self._check_consistency(Y, J, moving=not calm)
-        if self._pending is not None and self._k >= self._pending[0]:
-            self._apply(*self._pending[1:], Y, J)
-            tau_mm = Y @ self._phi
-        if self._queued is not None and self._job is None and self._steps is None and self._pending is None:
-            asked, self._queued = self._queued, None   # under the compensation just applied
-            self._on_detection(asked)
-        comp = -tau_mm if tool is None else -tau_mm - tool
+            tau = tau - tool
+        i = self._k % len(self._q)
+        self._q[i], self._dq[i], self._tau[i] = q, dq, tau
+        self._k += 1
+        r = tau - Y @ self._phi
+        if self.correction is not None:
+            c = self.correction.correction(q, dq)
+            r = r - c if np.isfinite(c).all() else r
+        self.model.push(r, dq)
+        self._still = self._still + 1 if np.abs(dq).max() < s.rest_speed else 0
+        due, S = self._due, s.changes.short
+        if due is not None and due.job is not None and due.job.done():
+            self._decided(*due.job.result(), due.level, due.kind, due.refine)
+        elif due is not None and due.job is None and self._k >= due.at:
+            self._apply(due, Y, J)
+        elif due is None and self.detector is not None:
+            self._algorithm_1(q, r, J)
+        elif due is None and self.model.reference is None:            # the first level: the robot's own bias
+            if self._k >= 2 * S and (self._still >= 2 * S or self._k >= s.window):
+                self.model.set_reference(q, self._gradient(q))
+        elif due is None and self._k % 5 == 0:
+            self._step(q, Y, J)
+        comp = -(Y @ self._phi) if tool is None else -(Y @ self._phi) - tool
         self._last = np.minimum(np.maximum(comp, -self._limit), self._limit)
         return self._last
+
+    def _step(self, q, Y, J):
+        """Every 5th sample: judge a departure from the reference (every 10th), learn the noise at rest, or make the
+        estimate at rest a change made in motion is owed."""
+        m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
+        if self._refine is not None and self._still >= s.window:       # owed: the same change, friction gone
+            level, self._refine = self._refine, None
+            return self._estimate_now(s.window, level, "at rest", refine=False)
+        if m.departure(q, Y) <= s.changes.detect:
+            self._since, self._wrench, self._refused = None, False, None
+            if self._still >= 2 * S and k % S == 0 and self._refine is None:
+                m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
+            return
+        self._since = k if self._since is None else self._since
+        if k % 10:
+            return
+        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
+        self.verdicts.append((k / s.rate, v))
+        if v.sure < s.changes.confidence:
+            return                                                     # undecided: more samples
+        if v.best == "payload":
+            if v.mass_std > max(0.05 * v.phi[0], 0.025) and k - self._since < 0.3 * s.rate:
+                return                       # the level still moves with the arm: its mass not yet known to 5 %
+            if self._refused is not None and m.same(v.d, self._refused, q, Y):
+                return                       # this level's estimate was refused: not again until it moves
+            W = s.detection_window
+            self._estimate_now(W, m.reference.level, "detection", refine=self._still < W)
+        elif v.best == "back":
+            e = Estimate(theta_of(v.phi), np.zeros(4), np.zeros((4, 4)), np.zeros(4), np.zeros(4, dtype=bool), 0.0,
+                         0, True, t=k / s.rate, kind="back", prior_source="")
+            e.reason = "the level returned to what this earlier payload leaves"
+            self.history.append(e)
+            self._due = _Due(e, k, "back", phi_cov=v.cov)
+        elif v.best == "noise" and self._still >= 2 * S and self._refine is None:
+            m.set_reference(q, self._gradient(q))      # the bias moved with the pose: its new level
+            self._since = None                                         # (still: no friction in it)
+        elif not self._wrench:
+            self.changes_not_payload, self._wrench = self.changes_not_payload + 1, True
+
+    def _algorithm_1(self, q, r, J):
+        """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window, referred to
+        the torque before the change it found (its reference_torque), applied if plausible."""
+        s, lam = self.settings, self.detector.settings.lam
+        if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
+            A = J @ J.T                                                # (J J^T + lam I)^-1 J by Cholesky (LAPACK:
+            A.flat[::7] += lam                                         # a third of np.linalg.solve's time here)
+            _, PJ, bad = lapack.dposv(A, J)
+            self._fq, self._P = q, (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
+        if self.detector.push(r, self._P @ r) and self._k >= self.detector.settings.window:
+            self._estimate_now(s.detection_window, self.detector.reference_torque.copy(), "detection", refine=False)
+
+    def _gradient(self, q):
+        """d G / d q (n, n) of the nominal gravity torque at q (central differences): the direction the robot
+        model's error moves in as the pose changes (changes.ChangeModel.covariance)."""
+        h, E = 1e-4, np.eye(self.robot.n) * 1e-4
+        return np.stack([(self.robot.gravity(q + e) - self.robot.gravity(q - e)) / (2 * h) for e in E], axis=1)
+
+    def _estimate_now(self, W, level, kind, refine):
+        """Network + VI on the newest W samples less `level` (the residual the compensation left before the change:
+        what remains is the whole payload's torque), now or as a job on the executor."""
+        idx = np.arange(self._k - W, self._k) % len(self._q)
+        Qw, Tw = self._q[idx], self._tau[idx] - level
+        if self.correction is not None:
+            Tw = Tw - self.correction.correction(Qw, self._dq[idx])
+        if self.executor is None:
+            return self._decided(*self._estimate(Qw, Tw), level, kind, refine)
+        prepare = getattr(self.executor, "prepare", None)
+        if prepare is not None:
+            prepare(Qw, Tw)
+        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw))
+
+    def _decided(self, e, S, level, kind, refine):
+        """An estimate of the window referred to `level` is back: applied (after its own wall time, if
+        settings.asynchronous, or from the next sample with an executor) if the arm can carry it."""
+        s = self.settings
+        e.t, e.kind = self._k / s.rate, kind
+        e.accepted = self._plausible(e.mean)
+        self.history.append(e)
+        self._due = None
+        if not e.accepted:
+            e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "
+                        f"arm carries (max_mass {s.max_mass} kg, max_com {s.max_com} m)")
+            self._refused = self.model.mean(s.changes.short) - self.model.reference.level \
+                if self.model.reference is not None else None
+            return
+        delay = (math.ceil(e.seconds * s.rate) if s.asynchronous else 0) if self.executor is None else 1
+        self._due = _Due(e, self._k + delay, kind, refine, level)
 
     def _plausible(self, theta) -> bool:
         """Whether theta (4,) is a payload the arm can carry: mass <= 1.2 max_mass and, from 0.1 kg on, CoM within max_com."""
         s = self.settings
         return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
 
-    def _apply(self, e, level, before, Y, J):
-        """Compensate the estimate e from now on; the detector's buffer is re-expressed in the new residual. level:
-        (q, residual level) the new compensation should leave at pose q (its reference), or None; before: the estimate
-        compensated before the change e answers (None: not known)."""
-        self._lv.muted, self._lv.rejected = LevelMap(self.settings.pose_tolerance), None   # judged before it; the
-        self._lv.doubtful = self._lv.renewing = False     # levels are now what a compensation was accepted against
-        if level is not None:
-            self._lv.explained.put(*level)
-        theta = safe_theta(e.mean, self.theta, self.settings.max_mass)
-        phi = vi.phi_of(theta)
+    def _apply(self, due, Y, J):
+        """Compensate the decided estimate from now on; the residuals held are re-expressed under it."""
+        self._due = None
+        theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
+        phi = phi_of(theta)
+        self.payloads.remember(self._phi, self.model.compensated)
+        self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
-        lift = before is not None and before[0] > theta[0] >= 0.1      # part of the load gone, part still there
-        self._undo = (vi.phi_of(before), self._k + int(self.settings.hold_axial * self.settings.rate)) if lift else None
         self.theta, self._phi = theta, phi
-        self.detector.shift(d, self._P @ d)                             # the pseudo-force map at this pose
-        self._r -= d                                                   # the arm is near this pose over the buffer
-        e.applied = self._k / self.settings.rate
-        self._pending, self._still, self._calm, self._slow, self._held = None, 0, 0, 0, None   # the arm answers: wait for rest
-        self._slow_rejected = LevelMap(self.settings.pose_tolerance, size=1)
-        self._stays = LevelMap(self.settings.pose_tolerance, size=1)
+        self.model.shift(d)
+        if self.detector is not None:
+            self.detector.shift(d, self._P @ d)
+        due.estimate.applied = self._k / self.settings.rate
+        self._since, self._wrench, self._refused = None, False, None
+        self._refine = due.level if due.refine else None
 
-    def _buffer(self):
-        """The last `detector.window` samples, oldest first: q, tau_ext less any fitted correction, residual."""
-        keep = self.settings.detector.window
-        order = (np.arange(keep) + self._k) % keep
-        Q, TAU = self._q[order], self._tau[order]
-        if self.correction is not None:                               # the effects a better model explains
-            TAU = TAU - self.correction.correction(Q, self._dq[order])
-        return Q, TAU, self._r[order]
 
-    def _change(self, Qw, TAUw, bias, theta_before, kind, then, accept=None, level=None, asked=None, evidence=(),
-                Tw=None):
-        """Estimate on the window Qw, Tw = TAUw - bias (referred to the torque before a change; with the windows of
-        `evidence`, combined) now, or as a job on the executor (judged once update finds it done)."""
-        Tw = TAUw - bias if Tw is None else Tw
-        request = (self._k if asked is None else asked, Qw, Tw, bias, theta_before, kind, then, accept, level)
-        args = ([x[0] for x in evidence] + [Qw], [x[1] for x in evidence] + [Tw]) if evidence else (Qw, Tw)   # their own
-        if self.executor is None:
-            return self._judge(*request, *self._estimate(*args))
-        self._job = (self.executor.submit(self._estimate, *args), request, self._k, False)
+def _phi_cov(theta, cov):
+    """Covariance (4, 4) of phi = (m, m r) from theta's (4, 4) at theta (first order)."""
+    m, r = theta[0], theta[1:]
+    D = np.zeros((4, 4))
+    D[0, 0], D[1:, 0], D[1:, 1:] = 1.0, r, m * np.eye(3)
+    return D @ np.asarray(cov) @ D.T
 
-    def _judge(self, k, Qw, Tw, bias, theta_before, kind, then, accept, level, e, S):
-        """Judge the estimate e of the window requested at sample k against the payload before the change, schedule
-        it if accepted (accept(e, Tw, Ybar) with Ybar the window's mean regressor, default: explained share >=
-        min_explained) and hand it to then(e, Ybar); level: the residual level it will leave. S: see _estimate
-        (|Tw - Y phi|^2 summed over the window = |Tw|^2 - 2 phi.sum Y^T Tw + phi^T sum Y^T Y phi, in O(1))."""
-        s, n, tt = self.settings, self.robot.n, float(np.vdot(Tw, Tw))
-        Ybar, left = S[:n], lambda phi: tt - 2.0 * (S[n + 4] @ phi) + phi @ S[n:n + 4] @ phi
-        e.t, e.kind = k / s.rate, kind
-        before = max(left(vi.phi_of(theta_before)), 1e-12)          # what the estimate before leaves
-        e.explained = 1.0 - left(vi.phi_of(e.mean)) / before
-        plausible = self._plausible(e.mean)
-        e.accepted = plausible and bool(e.explained >= s.min_explained if accept is None else accept(e, Tw, Ybar))
-        if not plausible:
-            e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "
-                        f"arm carries (max_mass {s.max_mass} kg, max_com {s.max_com} m)")
-        elif not e.accepted:
-            e.reason = (f"explains only {100 * e.explained:.0f} % of the change" if accept is None else
-                        "it does not make the compensation consistent with tau_ext")
-        self.history.append(e)
-        if e.accepted:                     # with an executor, on the sample after the job is found done
-            self._evidence = (self._evidence + [(Qw, Tw, bias)])[-4:] if kind == "accumulated" else [(Qw, Tw, bias)]
-            delay = math.ceil(e.seconds * s.rate) if s.asynchronous else 0
-            self._pending = [self._k + delay if self.executor is None else self._k + 1, e, level,    # from now
-                             theta_before if kind in ("detection", "at rest") else None]
-        then(e, Ybar)
+
+def theta_of(phi):
+    """theta (4,) = (m, r) of phi (4,) = (m, m r); r = 0 without mass."""
+    m = float(phi[0])
+    return np.array([m, *(np.asarray(phi[1:]) / m if m > 1e-9 else np.zeros(3))])
 
 
 if __name__ == "__main__":          # python rme.py diagnose|calibrate|identify|plot LOG ...: the script's entry

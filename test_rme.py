@@ -6,6 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from changes import ChangeSettings
 from dynamics import PANDA_XML, Robot, skew
 from rme import RMESettings
 from cpic import JointHold
@@ -205,17 +206,13 @@ def test_from_xml_works_on_a_three_joint_planar_arm(tmp_path):
     (lambda: Plant(PlantConfig.ideal()).set_payload("heavy"), r"m: expected a mass in \[0, 100\] kg, found 'heavy'"),
     (lambda: Plant(PlantConfig.ideal()).push([0, 10.0, 0], offset=(1, 2)), r"offset: expected numbers in \[-2, 2\] m"),
     (lambda: PlantConfig(mass_scale=(1.0,) * 6), r"config.mass_scale: expected .*, shape \(7,\), found shape \(6,\)"),
-    (lambda: RMESettings(reference=600), r"settings.reference: expected an integer in 1..30 samples"),
     (lambda: RMESettings(rate=0.0), r"settings.rate: expected a number in \[10, 1e4\] Hz"),
     (lambda: RMESettings(window=10), r"settings.window: expected an integer in 20..500 samples"),
-    (lambda: RMESettings(hold_axial=np.inf), r"settings.hold_axial: expected a number in \[0, 60\] s"),
-    (lambda: RMESettings(axial_radius=0.02), r"settings.axial_radius: expected .* shape \(2,\)"),
-    (lambda: RMESettings(axial_radius=(0.04, np.nan)), r"settings.axial_radius: .* found nan at index 1"),
-    (lambda: RMESettings(axial_radius=None), r"settings.axial_radius: expected"),
-    (lambda: RMESettings(monitor_slow=(0.1, 0.2)), r"settings.monitor_slow: expected .* torque above monitor_thre"),
-    (lambda: RMESettings(monitor_slow=(np.nan, 1.0)), r"settings.monitor_slow: expected .*\(speed rad/s, level Nm\)"),
-    (lambda: RMESettings(monitor_slow=[0.1, 0.6]), r"settings.monitor_slow: expected \(speed, level\)"),
-    (lambda: RMESettings(monitor_slow=(0.01, 0.6)), r"settings.monitor_slow: expected .* above monitor_speed"),
+    (lambda: RMESettings(changes=None), r"settings.changes: expected an instance of ChangeSettings"),
+    (lambda: RMESettings(detector=0.7), r"settings.detector: expected an instance of DetectorSettings"),
+    (lambda: ChangeSettings(friction=(1.0,) * 7 + (np.nan,)), r"changes.friction: .* found nan at index 7"),
+    (lambda: ChangeSettings(confidence=0.3), r"changes.confidence: expected a number in \(0.5, 1\)"),
+    (lambda: ChangeSettings(push_force=-1.0), r"changes.push_force: expected a number in \(0, 1e4\] N"),
 ])
 def test_bad_input_raises_value_error_naming_the_argument(call, match):
     with pytest.raises(ValueError, match=match):

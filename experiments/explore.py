@@ -13,7 +13,6 @@ import numpy as np
 
 import checks
 from cpic import Attractor
-from detector import steady_prefix
 
 
 @dataclass(frozen=True)
@@ -201,7 +200,7 @@ class Explorer:
             return                                                    # the task's DS is no Attractor: not ours to move
         ended = self.log and self.log[-1].reference and not self.log[-1].status.startswith("abandoned")
         if s.reference_tilt and self._attempts < s.reference_attempts and not ended and not hist and \
-                float(self.theta[0]) == 0.0 and self.rme.settled and not self.rme.detector.active and \
+                float(self.theta[0]) == 0.0 and self.rme.settled and \
                 self.policy.angle == 0.0 and self._still >= max(s.window, int(s.rest_before * rs.rate)):
             if np.abs(self._window(s.window)[2]).max() < rs.rest_speed:   # still: no friction in window a
                 self._attempts += 1
@@ -209,8 +208,8 @@ class Explorer:
         if len(hist) == self._seen or self.policy.angle != 0.0:
             return
         e = hist[-1]
-        # final: no estimate at rest is due after it (one is made within refine_within of applying a detection's)
-        final = e.kind in ("at rest", "monitor") or not rs.refine or self.t > e.applied + rs.refine_within
+        # final: no estimate at rest is owed after it (RME owes one for a change it estimated in motion)
+        final = self.rme.settled
         if not (e.accepted and final and np.isfinite(e.applied) and e.applied <= self.t):
             if not e.accepted:
                 self._seen = len(hist)
@@ -259,27 +258,13 @@ class Explorer:
         return d.xanchor[5].copy()
 
     def _baseline(self, e):
-        """(tau_ext level (n,), q, dq (T, n)) before the change e answers: the still stretch (every joint slower than RME's
-        rest_speed, at most settings.reference samples, after any earlier accepted detection) around RME's reference
-        (detector.py: it precedes the change), up to where the level leaves it (detector.steady_prefix, as RME's own);
-        else what e left unexplained, if those are no longer kept."""
-        rs, s, keep = self.rme.settings, self.settings, len(self._q)
-        first = [h for h in self.rme.history if h.kind == "detection" and h.accepted and h.t <= e.t]
-        k0 = int(round(first[-1].t * rs.rate)) - rs.detector.window if first else -1
-        if first and self._k - k0 <= keep:
-            end = k0 + rs.reference                                  # RME's reference: [k0, end)
-            span = np.arange(k0, k0 + rs.detector.window - rs.detection_window) % keep   # the change lies in it
-            steady = k0 + steady_prefix(self._tau[span], rs.reference, len(span))
-            while end < steady and np.abs(self._dq[end % keep]).max() < rs.rest_speed:
-                end += 1                                             # after it while the level holds and all is still
-            low = max(self._k - keep, int(round(first[-2].t * rs.rate)) if len(first) > 1 else 0, end - s.reference)
-            k = k0
-            while k > low and np.abs(self._dq[(k - 1) % keep]).max() < rs.rest_speed:
-                k -= 1                                               # the still stretch before it
-            idx = np.arange(k, end) % keep
-            return self._tau[idx].mean(axis=0), self._q[idx], self._dq[idx]
-        q, tau, dq = self._window(s.window)
-        return (tau - self.robot.payload_torque(q, e.mean)).mean(axis=0), q, dq
+        """(tau_ext level (n,), q, dq (1, n)) the estimate e was referred to: RME's reference level (what tau_ext held
+        beyond the compensated payload before the change: the robot's bias) and the pose it was taken at."""
+        ref = self.rme.model.reference
+        if ref is None:
+            q, tau, dq = self._window(self.settings.window)
+            return (tau - self.robot.payload_torque(q, e.mean)).mean(axis=0), q, dq
+        return ref.level.copy(), ref.q[None].copy(), np.zeros((1, self.robot.n))
 
     def _window(self, T):
         """The last T samples, oldest first: q, tau_ext, dq (T, n)."""

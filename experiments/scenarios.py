@@ -68,11 +68,9 @@ def print_estimates(log, label="RME"):
         when = (f"applied at {e.applied:.3f} s" if e.accepted else f"refused: {e.reason} (not a load)")
         if e.accepted and e.reason:
             when += f" ({e.reason})"
-        what = {"detection": "detects a change", "at rest": "estimates again, arm at rest",
-                "monitor": "estimates again, arm at rest: the compensation no longer explained tau_ext",
-                "accumulated": "combines the windows seen at two orientations",
-                "withdrawn": "withdraws its estimate"}.get(e.kind, "estimates again, the arm did not come to rest")
-        blind = " (rz: prior, not observed at this pose)" if e.kind != "withdrawn" and not e.observed[3] else ""
+        what = {"detection": "finds a new payload", "at rest": "estimates again, arm at rest",
+                "back": "returns to an earlier payload"}.get(e.kind, "estimates")
+        blind = " (rz: prior, not observed at this pose)" if e.kind != "back" and not e.observed[3] else ""
         print(f"  {e.t:6.3f} s  {label} {what} [{e.kind}]; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m{blind}"
               f"  [truth m = {theta[k, 0]:.3f}, r = ({', '.join(f'{v:+.3f}' for v in theta[k, 1:])})]  "
@@ -285,12 +283,10 @@ def hold_estimate(config, theta, seed, correction=None, t_attach=0.75, seconds=1
     first = est.history[0] if est.history else None
     if not why:
         return first
-    s, left = est.settings, seconds - t_attach
+    left = seconds - t_attach
     reason = "" if first is not None else (
-        f"held as a possible press on the hand (its force's line passes through the flange); it waits hold_axial = "
-        f"{s.hold_axial:g} s, the run ends {left:g} s after the load" if est.changes_held else
-        "detected, but the change did not look like a payload" if est.changes_not_payload else
-        f"no detection in the {left:g} s after the load")
+        "detected, but judged an external wrench, not a payload" if est.changes_not_payload else
+        f"no change judged a payload in the {left:g} s after the load")
     return first, reason
 
 

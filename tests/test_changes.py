@@ -35,7 +35,7 @@ def fresh(rng, samples=200, settings=ChangeSettings()):
     m = ChangeModel(settings, N)
     bias = rng.normal(0, 0.3, N)
     stream(m, rng, [bias] * samples)
-    m.set_reference(m.mean(2 * settings.short), np.zeros(N), np.zeros((N, N)))
+    m.set_reference(np.zeros(N), np.zeros((N, N)))
     return m, bias
 
 
@@ -47,7 +47,7 @@ def verdict(rng, change, phi=np.zeros(4), earlier=(), trials=20):
         m, bias = fresh(rng)
         stream(m, rng, [bias + change(J, R, Y)] * 120)
         p = Payloads.plausible(3.0, 0.3)
-        p.earlier = [np.array(e, dtype=float) for e in earlier]
+        p.earlier, p.covs = [np.array(e, dtype=float) for e in earlier], [np.zeros((4, 4)) for _ in earlier]
         v = m.judge(Y, J, phi, np.zeros(N), p)
         best.append((v.best, v.sure))
     return best
@@ -134,6 +134,8 @@ def test_the_noise_is_learned_from_calm_stretches():
     s = ChangeSettings()
     m = ChangeModel(s, N)
     true = np.full(N, 0.02)                                 # a noisier sensor than the start value
+    stream(m, rng, [np.zeros(N)] * 2 * s.short)
+    m.set_reference(np.zeros(N), np.zeros((N, N)))
     for _ in range(600):
         stream(m, rng, [np.zeros(N)] * s.short, noise=true[0] * np.sqrt(s.short))   # means of std 0.02 Nm
         m.learn_noise()
@@ -144,4 +146,4 @@ def test_settings_are_checked():
     with pytest.raises(ValueError, match="changes.confidence"):
         ChangeSettings(confidence=1.0)
     with pytest.raises(ValueError, match="changes.short"):
-        ChangeSettings(short=2)
+        ChangeSettings(short=5)

@@ -15,8 +15,8 @@ TESTS = "tests"                        # the tests and their helpers; the design
 # Lowest first: a module may import modules of its own layer or below, never above.
 LAYERS = [
     {"checks", "qp", "dynamics"},
-    {"nn_numpy", "vi", "error_model", "detector", "ds", "cpic", "sim", "motion", "rme_settings", "rme_levels",
-     "rme_stream"},   # the method, the plant
+    {"nn_numpy", "vi", "error_model", "detector", "changes", "ds", "cpic", "sim", "motion", "rme_settings"},
+    # the method, the plant
     {"nn_train", "rme"},                                             # the pipeline and the trainer
     {"diagnosis"},                                                   # the diagnosis tool
     {"experiments", "franka", "robot"},                              # demos, benchmarks, the robot bridge

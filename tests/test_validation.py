@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import vi
+from changes import ChangeSettings
 from cpic import CPIC, Attractor, CPICConfig
 from detector import DetectorSettings
 from dynamics import PANDA_XML, Q_READY, Robot, phi_of
@@ -46,15 +47,12 @@ def cpic_with(**kwargs):
 
 @pytest.mark.parametrize("make, kwargs, name", [
     (RMESettings, dict(window=200.5), "settings.window"), (RMESettings, dict(window=None), "settings.window"),
-    (RMESettings, dict(monitor_window=300.5), "settings.monitor_window"),
-    (RMESettings, dict(refine_within=math.inf), "settings.refine_within"),
-    (RMESettings, dict(reference=1.5), "settings.reference"), (RMESettings, dict(rate=math.inf), "settings.rate"),
+    (RMESettings, dict(rest_speed=math.inf), "settings.rest_speed"), (RMESettings, dict(rate=math.inf), "settings.rate"),
     (RMESettings, dict(rate="1000"), "settings.rate"), (RMESettings, dict(max_mass=math.inf), "settings.max_mass"),
     (RMESettings, dict(max_com=math.inf), "settings.max_com"),
-    (RMESettings, dict(min_explained=-5), "settings.min_explained"),
-    (RMESettings, dict(pose_tolerance=math.nan), "settings.pose_tolerance"),
-    (RMESettings, dict(first_explained=5), "settings.first_explained"),
-    (RMESettings, dict(monitor_speed=-1), "settings.monitor_speed"),
+    (ChangeSettings, dict(short=40.5), "changes.short"), (ChangeSettings, dict(detect=math.nan), "changes.detect"),
+    (ChangeSettings, dict(model_error=-0.1), "changes.model_error"),
+    (ChangeSettings, dict(push_arm=math.inf), "changes.push_arm"),
     (vi.VISettings, dict(clip_norm=1e300), "clip_norm"), (vi.VISettings, dict(sigma_prior=(1e300,) * 4), "sigma_prior"),
     (vi.VISettings, dict(lr=1e300), "lr"), (vi.VISettings, dict(lr="0.1"), "lr"),
     (vi.VISettings, dict(noise_floor=1e300), "noise_floor"),
@@ -120,18 +118,20 @@ def test_every_field_refuses_generated_bad_values_naming_itself(cls, prefix):
 
 def _edge_settings(rng):
     """RMESettings with a random subset of fields at the edges of what they accept."""
-    edges = dict(window=20, monitor_window=500, refine_within=60.0, rate=float(rng.choice([10.0, 1e4])), max_mass=50.0,
-                 max_com=1.0, min_explained=0.0, first_explained=float(rng.choice([0.0, 1.0])), rest_speed=1.0,
-                 monitor_speed=1.0, monitor_slow=(0.0, 1e3), pose_tolerance=3.1416, hold_axial=60.0,
-                 axial_radius=(1.0, 0.0), max_abs_torque=1e4, monitor_threshold=1e-6, accumulate_angle=1e-3,
-                 reference=1, use_network=False)
+    edges = dict(window=20, rate=float(rng.choice([10.0, 1e4])), max_mass=50.0, max_com=1.0, rest_speed=1.0,
+                 max_abs_torque=1e4, use_network=False)
+    change_edges = dict(short=int(rng.choice([10, 250])), rest_noise=(1e-6,) * 7, friction=(100.0,) * 7,
+                        friction_slope=(1e-6,) * 7, model_error=float(rng.choice([0.0, 1.0])), push_force=1e4,
+                        push_arm=1e-3, detect=float(rng.choice([1e-6, 1e6])), confidence=0.999999)
     vi_edges = dict(sigma_prior=(1e3,) * 4, lr=1.0, clip_norm=1e3, noise_floor=10.0, noise_scale=1e3, adam_eps=1.0,
                     tol=10.0, map_steps=0, offset_std=10.0, motion_gain=100.0, motion_max=100.0, load_share=1.0,
                     slow_gain=10.0, observed_ratio=1.0, min_iterations=0, check_every=10000, average=0.0)
     det_edges = dict(activation_threshold=1e12, stabilisation_threshold=1e12, stabilisation_quadratic=1.0,
                      side_force_limit=1e4, refractory=0, lam=10.0)
     pick = lambda d: {k: v for k, v in d.items() if rng.random() < 0.5}
-    return RMESettings(**pick(edges), vi=vi.VISettings(**pick(vi_edges)), detector=DetectorSettings(**pick(det_edges)))
+    detector = DetectorSettings(**pick(det_edges)) if rng.random() < 0.5 else None    # Algorithm 1 or the model
+    return RMESettings(**pick(edges), vi=vi.VISettings(**pick(vi_edges)), changes=ChangeSettings(**pick(change_edges)),
+                       detector=detector)
 
 
 def test_settings_at_the_edges_of_what_they_accept_survive_a_stream_with_a_load_change():
@@ -140,7 +140,7 @@ def test_settings_at_the_edges_of_what_they_accept_survive_a_stream_with_a_load_
     rng = np.random.default_rng(5)
     Y, phi = ROBOT.payload_regressor(Q_READY), phi_of([1.5, 0.03, -0.02, 0.08])
     for draw in range(8):
-        while True:                                     # (some edges exclude others: monitor_slow > monitor_speed)
+        while True:                                     # (some edges exclude others)
             try:
                 settings = _edge_settings(rng)
                 break
