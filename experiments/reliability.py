@@ -39,6 +39,7 @@ class ReliabilityConfig:
     pushes: tuple = (0, 3)               # pushes per load episode (inclusive); push-only episodes have 1..pushes[1]
     push_force: tuple = (8.0, 50.0)      # N
     push_duration: tuple = (0.1, 2.0)    # s
+    push_from: float = 0.5               # s, the earliest push (the arm has settled from its start)
     vertical_prob: float = 1 / 3         # a push straight up or down (a press looks like a centred load)
     near_change_prob: float = 0.3        # a push that starts within near_change of a load change
     near_change: float = 0.3             # s
@@ -62,6 +63,9 @@ class ReliabilityConfig:
         if self.seconds < self.first_change[1] + self.rest_after_last:
             raise ValueError(f"seconds: expected at least first_change[1] + rest_after_last = "
                              f"{self.first_change[1] + self.rest_after_last} s, found {self.seconds}")
+        if self.seconds < self.push_from + self.push_duration[1] + self.rest_after_last:
+            raise ValueError(f"seconds: expected at least push_from + push_duration[1] + rest_after_last = "
+                             f"{self.push_from + self.push_duration[1] + self.rest_after_last} s, found {self.seconds}")
 
 
 def episode_seed(split: str, plant: str, kind: str, index: int) -> int:
@@ -92,7 +96,7 @@ def draw_episode(rng: np.random.Generator, cfg: ReliabilityConfig, loads: bool =
             start = min(start, last - cfg.push_duration[0])
             duration = min(duration, last - start)
         else:
-            start = rng.uniform(0.5, last - duration)
+            start = rng.uniform(cfg.push_from, last - duration)
         pushes.append((float(start), rng.uniform(*cfg.push_force) * direction, float(duration)))
     return {"changes": changes, "pushes": sorted(pushes, key=lambda p: p[0])}
 
@@ -266,7 +270,9 @@ CHANGE_KINDS = ("attach", "swap", "removal")
 def _times(values) -> dict:
     """Count, reached, median and p90 [s] of times where None is never (counted as infinite in the percentiles)."""
     x = np.array([np.inf if v is None else v for v in values], dtype=float)
-    pct = lambda q: None if not len(x) or not np.isfinite(np.percentile(x, q)) else float(np.percentile(x, q))
+    big = 1e9                                                # never, finite for the interpolation
+    pct = lambda q: None if not len(x) or np.percentile(np.minimum(x, big), q) >= big / 2 else float(
+        np.percentile(np.minimum(x, big), q))
     return dict(count=len(x), reached=int(np.isfinite(x).sum()), median=pct(50), p90=pct(90))
 
 
@@ -327,7 +333,8 @@ def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realist
                 log(f"  {n}/{len(tasks)} episodes ({time.perf_counter() - t0:.0f} s)")
     else:
         import multiprocessing
-        with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        methods = multiprocessing.get_all_start_methods()     # fork: the workers start with the modules loaded
+        with multiprocessing.get_context("fork" if "fork" in methods else "spawn").Pool(jobs) as pool:
             results = pool.map(run_episode, tasks, chunksize=1)
     loads, pushes = results[:episodes], results[episodes:]
     return {"summary": summarise(loads, pushes, cfg), "episodes": loads, "push_episodes": pushes,

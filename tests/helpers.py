@@ -25,6 +25,13 @@ def hold(seed, seconds, events, q0=Q_READY, settings=SYNC, preset="realistic"):
     return rec, est
 
 
+class SyncRME(RME):
+    """RME with SYNC settings, built as the benchmarks build an estimator (robot, rng=...): its runs repeat exactly."""
+
+    def __init__(self, robot, rng=None):
+        super().__init__(robot, settings=SYNC, rng=rng)
+
+
 def within(m_hat, m):
     """A mass estimate m_hat within 10 % of m, or 50 g of a light m."""
     return abs(m_hat - m) <= max(0.1 * m, 0.05)
