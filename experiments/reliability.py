@@ -193,8 +193,7 @@ def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
     free = np.ones(len(t), dtype=bool)                         # no push now nor within after_push
     for s, _, d in ep["pushes"]:
         free[_index(t, s):_index(t, s + d + cfg.after_push)] = False
-    rested = _run_length(calm & free) * dt >= cfg.rest_for - 1e-9
-    ctx = dict(t=t, dt=dt, m_hat=m_hat, right=right, calm=calm, rested=rested)
+    ctx = dict(t=t, dt=dt, m_hat=m_hat, right=right, calm=calm, quiet=calm & free)
     ends = [c["t"] for c in ep["changes"][1:]] + [t[-1] + dt]
     before = [0.0] + [c["m"] for c in ep["changes"][:-1]]
     changes = [_score_change(c, m0, t_end, ep["pushes"], ctx, cfg) for c, m0, t_end in zip(ep["changes"], before, ends)]
@@ -213,13 +212,13 @@ def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: Reli
     t, dt, m_hat = ctx["t"], ctx["dt"], ctx["m_hat"]
     i0, i1 = _index(t, c["t"]), _index(t, t_end)
     right = ctx["right"][i0:i1]
-    rested = np.flatnonzero(ctx["rested"][i0:i1])
+    rested = np.flatnonzero(_run_length(ctx["quiet"][i0:i1]) * dt >= cfg.rest_for - 1e-9)   # calm since the change
     wrong = np.flatnonzero(~right)
     if right[-1]:
         to_right = 0.0 if not len(wrong) else float(t[i0 + wrong[-1] + 1] - c["t"])
     else:
         to_right = None
-    ignored = _longest_run(ctx["calm"][i0:i1] & ~right) * dt if c["m"] > 0 else None
+    ignored = float(_longest_run(ctx["calm"][i0:i1] & ~right) * dt) if c["m"] > 0 else None
     kept = None
     if c["kind"] != "attach":
         old = np.abs(m_hat[i0:i1] - m0) <= tolerance(m0, cfg)
@@ -269,10 +268,15 @@ CHANGE_KINDS = ("attach", "swap", "removal")
 
 def _times(values) -> dict:
     """Count, reached, median and p90 [s] of times where None is never (counted as infinite in the percentiles)."""
-    x = np.array([np.inf if v is None else v for v in values], dtype=float)
-    big = 1e9                                                # never, finite for the interpolation
-    pct = lambda q: None if not len(x) or np.percentile(np.minimum(x, big), q) >= big / 2 else float(
-        np.percentile(np.minimum(x, big), q))
+    x = np.sort(np.array([np.inf if v is None else v for v in values], dtype=float))
+
+    def pct(q):                                              # linear between neighbours; None: next to a never
+        if not len(x):
+            return None
+        pos = q / 100 * (len(x) - 1)
+        lo, hi, w = int(np.floor(pos)), int(np.ceil(pos)), pos - np.floor(pos)
+        v = x[lo] if w == 0 else x[lo] + w * (x[hi] - x[lo])
+        return float(v) if np.isfinite(v) else None
     return dict(count=len(x), reached=int(np.isfinite(x).sum()), median=pct(50), p90=pct(90))
 
 

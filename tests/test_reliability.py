@@ -141,5 +141,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     ep = dict(changes=[dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach"),
                        dict(t=2.0, m=0.0, r=np.zeros(3), kind="removal")], pushes=[])
     attach, removal = score(rec, ep, cfg)["changes"]
-    assert removal["to_right_s"] is None and not removal["compensated"] and removal["kept_s"] == pytest.approx(2.0)
+    assert removal["to_right_s"] is None and removal["compensated"] is False and removal["kept_s"] == pytest.approx(2.0)
     assert attach["to_right_s"] == pytest.approx(0.2)
+    rec.dq[(rec.t >= 2.0 - 1e-9) & (rec.t < 3.75 - 1e-9)] = 0.05   # calm only 0.25 s after the removal: never rested
+    assert score(rec, ep, cfg)["changes"][1]["compensated"] is None
