@@ -130,6 +130,8 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     p = score(press, dict(changes=[], pushes=[(2.0, np.array([0.0, 1.0, -20.0]), 1.0)]), cfg)
     assert p["pushes"][0]["kind"] == "press" and p["pushes"][0]["outlived_s"] == pytest.approx(0.15)
     assert p["pushes"][0]["rise_mm"] == pytest.approx(12.0)
+    with_another = dict(changes=[], pushes=[(2.0, np.array([0.0, 1.0, -20.0]), 1.0), (3.4, np.array([0.0, 0.0, 20.0]), 0.2)])
+    assert [x["rise_mm"] for x in score(press, with_another, cfg)["pushes"]] == [None, None]   # not alone; not a press
     sm = summarise([s], [p], cfg)
     assert sm["compensated"]["all"]["yes"] == 3 and sm["to_right_s"]["no_push"]["attach"]["median"] == pytest.approx(0.6)
     assert sm["ignored_load"]["over_target"] == 1 and sm["kept_after_gone"]["over_target"] == 1
