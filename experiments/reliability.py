@@ -35,7 +35,8 @@ class ReliabilityConfig:
     com: float = 0.15                    # m, |rx|, |ry| <= com, rz in [0, com] (ee frame)
     centred_prob: float = 0.3            # a load centred below the flange (a basket, a grasped object) ...
     centred: float = 0.01                # m ... with |rx|, |ry| <= centred
-    last_removal_prob: float = 0.5       # the last change removes a held load (otherwise swaps it)
+    removal_prob: float = 0.5            # a change while a load is held removes it (otherwise swaps it) ...
+    last_removal_prob: float = 0.5       # ... and so does the last change of an episode
     pushes: tuple = (0, 3)               # pushes per load episode (inclusive); push-only episodes have 1..pushes[1]
     push_force: tuple = (8.0, 50.0)      # N
     push_duration: tuple = (0.1, 2.0)    # s
@@ -108,7 +109,7 @@ def _draw_changes(rng, cfg):
     times = [t for t in times if t <= cfg.seconds - cfg.rest_after_last]
     changes, held = [], False
     for i, t in enumerate(times):
-        if held and (rng.random() < (cfg.last_removal_prob if i == len(times) - 1 else 0.5)):
+        if held and (rng.random() < (cfg.last_removal_prob if i == len(times) - 1 else cfg.removal_prob)):
             changes.append(dict(t=float(t), m=0.0, r=np.zeros(3), kind="removal"))
             held = False
             continue
