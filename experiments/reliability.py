@@ -209,7 +209,7 @@ def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
 def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One change over its interval [t, t_end): compensated once rested (None: never rested), the time to the right
     mass for good (None: wrong at the interval's end), the longest calm stretch with the held load uncompensated,
-    and how long the old load's compensation was kept after it had gone (removals and swaps)."""
+    and how long the compensation of the load before it was kept after it had gone (removals and swaps)."""
     t, dt, m_hat = ctx["t"], ctx["dt"], ctx["m_hat"]
     i0, i1 = _index(t, c["t"]), _index(t, t_end)
     right = ctx["right"][i0:i1]

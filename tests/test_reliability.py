@@ -137,7 +137,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     assert sm["ignored_load"]["over_target"] == 1 and sm["kept_after_gone"]["over_target"] == 1
     assert sm["pushes"]["sideways"]["yes"] == 1 and sm["presses_withdrawn"]["yes"] == 1
     assert sm["press_rise_mm"]["over_target"] == 1 and sm["push_only_outlived"]["over_target"] == 0
-    # a removal never withdrawn: never right, the old load kept to the end, and a swap read at rest only wrongly
+    # a removal never withdrawn: never right, the load before it kept to the end; then one never rested
     rec = _trace(4.0, [(1.2, 4.0, 1.0)])
     rec.theta[(rec.t >= 1.0 - 1e-9) & (rec.t < 2.0 - 1e-9), 0] = 1.0
     ep = dict(changes=[dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach"),
