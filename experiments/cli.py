@@ -55,7 +55,7 @@ DEMOS = {
 }
 
 FLAGS = {
-    "preset": (("--preset",), dict(default="realistic", choices=("ideal", "realistic", "harsh"), help="plant and sensors")),
+    "preset": (("--preset",), dict(default="realistic", choices=("ideal", "realistic"), help="plant and sensors")),
     "seed": (("--seed",), dict(type=checks.argument(SEEDS), default=0,
                                help=f"seed of the np.random.Generator, {SEEDS}")),
     "plot": (("--plot",), dict(metavar="FILE", type=checks.writable, default=None,
