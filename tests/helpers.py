@@ -49,7 +49,7 @@ def found_episode(seed, loads=True, settings=None):
     rng = np.random.default_rng(seed)
     plant = Plant(PlantConfig.realistic(rng), rng=rng)
     q0 = random_pose(plant.robot, rng, DataConfig())
-    changes, pushes = _found_changes(rng) if loads else [], []
+    changes, pushes = _found_changes(rng, loads), []
     for _ in range(rng.integers(0 if loads else 1, 4)):
         direction = np.array([0.0, 0.0, rng.choice([-1.0, 1.0])]) if rng.random() < 0.25 else rng.normal(size=3)
         direction /= np.linalg.norm(direction)
@@ -72,9 +72,9 @@ def found_episode(seed, loads=True, settings=None):
                 final_error_mm=float(1e3 * rec.ee_error[-1]))
 
 
-def _found_changes(rng):
+def _found_changes(rng, loads):
     changes, t, m = [], rng.uniform(1.0, 2.5), 0.0
-    for _ in range(rng.integers(1, 4)):
+    for _ in range(rng.integers(1, 4) if loads else 0):
         if m > 0 and (t + 3.0 > 6.8 or rng.random() < 0.5):
             changes.append((t, 0.0, np.zeros(3)))
             m = 0.0
