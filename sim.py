@@ -76,33 +76,51 @@ class PlantConfig:
 
     @staticmethod
     def preset(name: str, rng: np.random.Generator | None = None) -> "PlantConfig":
-        """'ideal' or 'realistic' (drawn from rng): the two presets the demos and benchmarks offer."""
+        """'ideal', 'realistic' or 'harsh' (the last two drawn from rng): the presets the demos and benchmarks offer."""
         if name == "ideal":
             return PlantConfig.ideal()
-        if name == "realistic":
+        if name in ("realistic", "harsh"):
             if rng is None:
-                raise ValueError("rng: the realistic preset draws its link errors from a np.random.Generator, found None")
-            return PlantConfig.realistic(rng)
-        raise ValueError(f"preset: expected 'ideal' or 'realistic', found {name!r}")
+                raise ValueError(f"rng: the {name} preset draws its link errors from a np.random.Generator, found None")
+            return getattr(PlantConfig, name)(rng)
+        raise ValueError(f"preset: expected 'ideal', 'realistic' or 'harsh', found {name!r}")
 
     @staticmethod
     def realistic(rng: np.random.Generator) -> "PlantConfig":
-        """A plant and sensors like a real Panda's (panda_facts.md), link errors drawn from rng."""
-        direction = rng.normal(size=(N, 3))
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        shift = direction * rng.uniform(0.005, 0.02, size=(N, 1))          # CoM shifts of 5-20 mm
-        return PlantConfig(
-            tau_noise=_per_joint(0.02, 0.01),          # 0.005 quiescent, 0.03-0.09 while moving
-            tau_step=_per_joint(0.036, 0.006),         # steps seen in a real 1 kHz log
-            q_noise=1e-5, dq_noise=1e-3,
-            stale_prob=0.06,                           # about 6 % stale repeats in a real log
-            bias_amp=_per_joint(0.3, 0.1),             # a few tenths of a Nm, pose dependent
-            torque_offset=GAZ_FO,
-            mass_scale=tuple(1.0 + rng.uniform(-0.08, 0.08, N)),      # link masses within +-8 %
-            com_shift=tuple(map(tuple, shift)),
-            friction_sigmoid=(GAZ_P1, GAZ_P2, GAZ_P3),
-            armature=_per_joint(0.05, 0.02),           # assumption: rotor inertia order of magnitude
-            observer="momentum")
+        """A plant and sensors like a real Panda's (panda_facts.md), link errors drawn from rng: masses within
+        +-8 %, CoM shifts of 5-20 mm."""
+        return _drawn(rng, mass=0.08, shift=(0.005, 0.02))
+
+    @staticmethod
+    def harsh(rng: np.random.Generator) -> "PlantConfig":
+        """A plant the estimator was never tuned on, to check that what works on the realistic one is not tuned to
+        it: twice the realistic torque noise and pose bias, 1.5 x Gaz friction, a momentum observer of 50 1/s (twice
+        as slow), link masses within +-12 % and CoM shifts of 5-30 mm, drawn from rng in the realistic order."""
+        c = _drawn(rng, mass=0.12, shift=(0.005, 0.03))
+        p1, p2, p3 = c.friction_sigmoid
+        return dataclasses.replace(c, tau_noise=tuple(2.0 * x for x in c.tau_noise),
+                                   bias_amp=tuple(2.0 * x for x in c.bias_amp),
+                                   friction_sigmoid=(tuple(1.5 * x for x in p1), p2, p3), observer_gain=50.0)
+
+
+def _drawn(rng: np.random.Generator, mass: float, shift: tuple) -> PlantConfig:
+    """The realistic plant with link masses within +-mass (relative) and CoM shifts of shift (lo, hi) [m] in random
+    directions, drawn from rng."""
+    direction = rng.normal(size=(N, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    com = direction * rng.uniform(*shift, size=(N, 1))
+    return PlantConfig(
+        tau_noise=_per_joint(0.02, 0.01),          # 0.005 quiescent, 0.03-0.09 while moving
+        tau_step=_per_joint(0.036, 0.006),         # steps seen in a real 1 kHz log
+        q_noise=1e-5, dq_noise=1e-3,
+        stale_prob=0.06,                           # about 6 % stale repeats in a real log
+        bias_amp=_per_joint(0.3, 0.1),             # a few tenths of a Nm, pose dependent
+        torque_offset=GAZ_FO,
+        mass_scale=tuple(1.0 + rng.uniform(-mass, mass, N)),
+        com_shift=tuple(map(tuple, com)),
+        friction_sigmoid=(GAZ_P1, GAZ_P2, GAZ_P3),
+        armature=_per_joint(0.05, 0.02),           # assumption: rotor inertia order of magnitude
+        observer="momentum")
 
 
 @dataclass

@@ -1,5 +1,6 @@
 """What several test files share: the repository's folder, RME streaming on the simulated plant held by CPIC
-(hold, SYNC), a synthetic tau_ext stream at the ready pose, the mass tolerance, a 3-joint planar arm's MJCF."""
+(hold, SYNC), the randomised episodes regression cases were found in (found_episode), a synthetic tau_ext stream at
+the ready pose, the mass tolerance, a 3-joint planar arm's MJCF."""
 import os
 
 import numpy as np
@@ -24,9 +25,66 @@ def hold(seed, seconds, events, q0=Q_READY, settings=SYNC, preset="realistic"):
     return rec, est
 
 
+class SyncRME(RME):
+    """RME with SYNC settings, built as the benchmarks build an estimator (robot, rng=...): its runs repeat exactly."""
+
+    def __init__(self, robot, rng=None):
+        super().__init__(robot, settings=SYNC, rng=rng)
+
+
 def within(m_hat, m):
     """A mass estimate m_hat within 10 % of m, or 50 g of a light m."""
     return abs(m_hat - m) <= max(0.1 * m, 0.05)
+
+
+def found_episode(seed, loads=True, settings=None):
+    """The randomised 7 s episode of `seed` in which a regression case was found: CPIC holds a random pose of the
+    realistic plant, up to 3 loads (0.1-3 kg) attached, changed or removed 0.2-2 s apart from 1-2.5 s on (load
+    episodes), 5-60 N pushes of 0.1-2 s at the flange (a quarter vertical), RME (settings, default RMESettings()) in
+    the loop. A dict: the Record, the RME, the drawn `changes` [(t, m, r)] and `pushes` [(t, force, duration)], and
+    per change its `m`, the compensated `m_hat` at the next change (or the end), `latency_ms` to the first estimate
+    applied after it and `right_ms` to the first compensation within tolerance (None if none)."""
+    from experiments.runner import PayloadChange, Push
+    from nn_train import DataConfig, random_pose
+    rng = np.random.default_rng(seed)
+    plant = Plant(PlantConfig.realistic(rng), rng=rng)
+    q0 = random_pose(plant.robot, rng, DataConfig())
+    changes, pushes = _found_changes(rng, loads), []
+    for _ in range(rng.integers(0 if loads else 1, 4)):
+        direction = np.array([0.0, 0.0, rng.choice([-1.0, 1.0])]) if rng.random() < 0.25 else rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        duration = rng.uniform(0.1, 2.0)
+        start = (changes[rng.integers(len(changes))][0] + rng.uniform(-0.3, 0.3)
+                 if changes and rng.random() < 0.3 else rng.uniform(0.5, 6.0))
+        pushes.append((float(np.clip(start, 0.5, 4.0 - duration)), rng.uniform(5.0, 60.0) * direction, duration))
+    est = RME(plant.robot, rng=np.random.default_rng(seed + 1), **({} if settings is None else {"settings": settings}))
+    events = [PayloadChange(t, m, r) for t, m, r in changes]
+    events += [Push(t, f, d, body="link7", offset=(0.0, 0.0, 0.107)) for t, f, d in sorted(pushes, key=lambda p: p[0])]
+    rec = run(plant, CPIC(plant.robot, Attractor(*plant.robot.ee_pose(q0))), 7.0, est, events, q0=q0)
+    out = []
+    for (t, m, _), t_next in zip(changes, [c[0] for c in changes[1:]] + [7.0]):
+        applied = [e.applied for e in est.history if t <= e.t < t_next and e.accepted and e.applied is not None]
+        right = np.flatnonzero((rec.t >= t) & (rec.t < t_next) & (np.abs(rec.theta_hat[:, 0] - m) <= max(0.1 * m, 0.05)))
+        out.append(dict(m=m, m_hat=float(rec.theta_hat[rec.at(t_next) - 1, 0]),
+                        latency_ms=1e3 * (applied[0] - t) if applied else None,
+                        right_ms=1e3 * (rec.t[right[0]] - t) if len(right) else None))
+    return dict(rec=rec, est=est, changes=changes, pushes=pushes, scored=out,
+                final_error_mm=float(1e3 * rec.ee_error[-1]))
+
+
+def _found_changes(rng, loads):
+    changes, t, m = [], rng.uniform(1.0, 2.5), 0.0
+    for _ in range(rng.integers(1, 4) if loads else 0):
+        if m > 0 and (t + 3.0 > 6.8 or rng.random() < 0.5):
+            changes.append((t, 0.0, np.zeros(3)))
+            m = 0.0
+        else:
+            m = rng.uniform(0.1, 3.0)
+            changes.append((t, m, np.array([*rng.uniform(-0.15, 0.15, 2), rng.uniform(0.0, 0.15)])))
+        t += rng.uniform(0.2, 2.0)
+        if t > 4.0:
+            break
+    return changes
 
 
 def synthetic_stream(settings, bias, seconds, load=None, t_load=0.0, move=None, drift=None, seed=8, expect=None):

@@ -302,7 +302,8 @@ def test_momentum_observer_at_its_highest_gain_stays_finite():
 # --- command lines: every argument checked by its parser, one line on stderr -------------------------------------
 @pytest.mark.parametrize("argv", [["reliability", "--episodes", "0"], ["calibration", "--windows", "0"],
                                   ["static", "--seed", "-1"], ["static", "--plot", "/no/such/folder/f.png"],
-                                  ["bench", "--seed", "1.5"], ["reliability", "--episodes", "1e9"]])
+                                  ["bench", "--seed", "1.5"], ["reliability", "--episodes", "1e9"],
+                                  ["reliability", "--jobs", "0"]])
 def test_sim_command_line_refuses_bad_arguments_in_its_parser(argv, capsys):
     from experiments import cli
     with pytest.raises(SystemExit) as stop:

@@ -1,0 +1,149 @@
+"""The reliability benchmark (experiments/reliability.py): the harsh plant as stated, disjoint and reproducible seed
+streams, worker processes that change nothing, and each score on hand-made traces whose answer is known."""
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from cpic import CPIC, Attractor
+from dynamics import Q_READY, Robot
+from experiments.reliability import (ReliabilityConfig, draw_episode, episode_seed, reliability, score, summarise)
+from experiments.runner import run
+from sim import GAZ_P1, Plant, PlantConfig
+
+
+def test_the_harsh_plant_differs_from_the_realistic_one_as_stated_and_runs():
+    real, harsh = (getattr(PlantConfig, name)(np.random.default_rng(11)) for name in ("realistic", "harsh"))
+    assert np.allclose(harsh.tau_noise, 2 * np.array(real.tau_noise))
+    assert np.allclose(harsh.bias_amp, 2 * np.array(real.bias_amp))
+    assert np.allclose(harsh.friction_sigmoid[0], 1.5 * np.array(GAZ_P1))
+    assert np.allclose(harsh.friction_sigmoid[1:], real.friction_sigmoid[1:])
+    assert (real.observer_gain, harsh.observer_gain) == (100.0, 50.0)
+    # the same draws, stretched: masses +-12 % instead of +-8 %, CoM shifts 5-30 mm instead of 5-20 mm
+    assert np.allclose(np.array(harsh.mass_scale) - 1, 1.5 * (np.array(real.mass_scale) - 1))
+    assert np.all(np.abs(np.array(harsh.mass_scale) - 1) <= 0.12)
+    r, h = (np.linalg.norm(c.com_shift, axis=1) for c in (real, harsh))
+    assert np.allclose(h - 0.005, (r - 0.005) * 0.025 / 0.015) and np.all((h >= 0.005) & (h <= 0.03))
+    assert np.allclose(np.array(harsh.com_shift) / h[:, None], np.array(real.com_shift) / r[:, None])
+    for name in ("tau_step", "q_noise", "dq_noise", "stale_prob", "torque_offset", "armature", "observer"):
+        assert getattr(harsh, name) == getattr(real, name), name
+    assert PlantConfig.preset("harsh", np.random.default_rng(11)) == harsh
+    rng = np.random.default_rng(11)
+    plant = Plant(PlantConfig.harsh(rng), rng=rng)
+    dq = np.full(7, 0.3)
+    assert np.allclose(plant._friction(dq) - plant._friction(-dq),
+                       1.5 * (Plant(real, rng=np.random.default_rng(1))._friction(dq)
+                              - Plant(real, rng=np.random.default_rng(1))._friction(-dq)))
+    rec = run(plant, CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY))), 0.5, q0=Q_READY)
+    assert np.all(np.isfinite(rec.tau_ext)) and rec.ee_error.max() < 0.02   # CPIC holds it within 2 cm
+
+
+def test_the_splits_seed_streams_are_disjoint_and_each_episode_is_reproducible():
+    cfg = ReliabilityConfig()
+    seeds = {split: [episode_seed(split, plant, kind, i) for plant in ("realistic", "harsh")
+                     for kind in ("load", "push") for i in range(2000)] for split in ("tuning", "test")}
+    assert len(set(seeds["tuning"])) == len(seeds["tuning"]) == len(set(seeds["test"]))
+    assert not set(seeds["tuning"]) & set(seeds["test"])
+    draw = lambda *key: draw_episode(np.random.default_rng(episode_seed(*key)), cfg)
+    a, b, c = draw("tuning", "harsh", "load", 7), draw("tuning", "harsh", "load", 7), draw("test", "harsh", "load", 7)
+    assert json.dumps(a, default=np.ndarray.tolist) == json.dumps(b, default=np.ndarray.tolist)
+    assert json.dumps(a, default=np.ndarray.tolist) != json.dumps(c, default=np.ndarray.tolist)
+    with pytest.raises(ValueError, match="split"):
+        episode_seed("validation", "realistic", "load", 0)
+
+
+def test_the_drawn_episodes_follow_the_stated_distribution():
+    """3000 draws: each stated share within 3 standard errors, every bound held."""
+    cfg = ReliabilityConfig()
+    eps = [draw_episode(np.random.default_rng(episode_seed("tuning", "realistic", "load", i)), cfg) for i in range(3000)]
+    loads = [c for e in eps for c in e["changes"] if c["m"] > 0]
+    pushes = [p for e in eps for p in e["pushes"]]
+    centred = np.mean([np.abs(c["r"][:2]).max() <= cfg.centred for c in loads])
+    vertical = np.mean([np.hypot(*p[1][:2]) == 0 for p in pushes])
+    expected = 0.3 + 0.7 * (cfg.centred / cfg.com) ** 2            # off-centre loads may fall inside 1 cm too
+    assert abs(centred - expected) < 3 * np.sqrt(expected * (1 - expected) / len(loads))
+    assert abs(vertical - 1 / 3) < 3 * np.sqrt(2 / 9 / len(pushes))
+    for e in eps:
+        times = [c["t"] for c in e["changes"]]
+        assert 1 <= len(times) <= 3 and 1.0 <= times[0] <= 2.5 and np.all(np.diff(times) >= 0.6 - 1e-12)
+        assert np.all(np.diff(times) <= 2.5) and len(e["pushes"]) <= 3
+        assert max(times + [s + d for s, _, d in e["pushes"]]) <= 8.0 - 3.0 + 1e-9
+        held = 0.0
+        for c in e["changes"]:
+            assert c["kind"] == ("removal" if c["m"] == 0 else "swap" if held else "attach")
+            assert c["m"] == 0 or (0.1 <= c["m"] <= 3.0 and np.abs(c["r"][:2]).max() <= 0.15 and 0 <= c["r"][2] <= 0.15)
+            assert held > 0 or c["m"] > 0                          # nothing is removed that is not held
+            held = c["m"]
+        for s, f, d in e["pushes"]:
+            assert 8.0 <= np.linalg.norm(f) <= 50.0 and 0.1 - 1e-12 <= d <= 2.0 and s >= 0.5
+
+
+def test_worker_processes_give_the_same_results_as_one():
+    cfg = ReliabilityConfig(seconds=1.2, first_change=(0.3, 0.5), gap=(0.2, 0.3), rest_after_last=0.6,
+                            push_duration=(0.1, 0.2), push_from=0.2)
+    runs = [reliability(1, "tuning", "harsh", "tests.helpers:SyncRME", jobs, cfg, log=lambda *a: None)
+            for jobs in (1, 2)]
+    same = [json.dumps({k: r[k] for k in ("summary", "episodes", "push_episodes")}, default=float) for r in runs]
+    assert same[0] == same[1]
+    assert runs[0]["episodes"][0]["seed"] == episode_seed("tuning", "harsh", "load", 0)
+    with pytest.raises(ValueError, match="estimator"):
+        reliability(1, estimator="rme", cfg=cfg)
+
+
+def _trace(seconds, pieces, moving=()):
+    """A Record-like object at 1 kHz at the ready pose: theta_hat's mass set piecewise [(t0, t1, m)], the arm
+    moving at 0.05 rad/s over each (t0, t1) in moving, ee at its target."""
+    t = np.arange(int(seconds * 1000)) * 1e-3
+    theta, theta_hat, dq = np.zeros((len(t), 4)), np.zeros((len(t), 4)), np.zeros((len(t), 7))
+    for t0, t1, m in pieces:
+        theta_hat[(t >= t0 - 1e-9) & (t < t1 - 1e-9), 0] = m
+    for t0, t1 in moving:
+        dq[(t >= t0 - 1e-9) & (t < t1 - 1e-9)] = 0.05
+    zeros = np.zeros((len(t), 3))
+    return SimpleNamespace(t=t, q=np.tile(Q_READY, (len(t), 1)), dq=dq, tau=np.zeros((len(t), 7)), theta=theta,
+                           theta_hat=theta_hat, p=zeros.copy(), target=zeros, ee_error=np.zeros(len(t)),
+                           robot=Robot.panda())
+
+
+def test_the_scores_of_hand_made_traces_are_the_known_ones():
+    cfg = ReliabilityConfig()
+    # 1 kg at 1 s (read 0.8 kg from 1.4 s, 1 kg from 1.6 s), 2 kg at 3 s (1 kg kept until 4.7 s), removed at 5.5 s
+    # (withdrawn at 5.6 s); a sideways push 6.1-6.6 s, read as 0.5 kg from 6.2 s to 7.0 s, the arm moving 6.1-7.2 s
+    changes = [dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach"), dict(t=3.0, m=2.0, r=np.zeros(3), kind="swap"),
+               dict(t=5.5, m=0.0, r=np.zeros(3), kind="removal")]
+    rec = _trace(8.0, [(1.4, 1.6, 0.8), (1.6, 4.7, 1.0), (4.7, 5.6, 2.0), (6.2, 7.0, 0.5)], moving=[(6.1, 7.2)])
+    for c, t1 in zip(changes, (3.0, 5.5, 8.0)):
+        rec.theta[(rec.t >= c["t"] - 1e-9) & (rec.t < t1 - 1e-9), 0] = c["m"]
+    ep = dict(changes=changes, pushes=[(6.1, np.array([20.0, 0.0, 0.0]), 0.5)])
+    s = score(rec, ep, cfg)
+    attach, swap, removal = s["changes"]
+    assert [c["compensated"] for c in s["changes"]] == [True, True, True]
+    assert [c["to_right_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, 1.5], abs=1e-9)
+    assert [c["ignored_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, None], abs=1e-9)
+    assert (attach["kept_s"], swap["kept_s"], removal["kept_s"]) == (None, pytest.approx(1.7), pytest.approx(0.1))
+    (push,) = s["pushes"]
+    assert push["kind"] == "sideways" and push["compensated"] and push["outlived_s"] == pytest.approx(0.4)
+    # push-only: a press 2-3 s read as 1.5 kg from 2.3 s to 3.15 s, the hand 12 mm above its target at 3.1 s
+    press = _trace(5.0, [(2.3, 3.15, 1.5)])
+    press.p[3100, 2] = 0.012
+    p = score(press, dict(changes=[], pushes=[(2.0, np.array([0.0, 1.0, -20.0]), 1.0)]), cfg)
+    assert p["pushes"][0]["kind"] == "press" and p["pushes"][0]["outlived_s"] == pytest.approx(0.15)
+    assert p["pushes"][0]["rise_mm"] == pytest.approx(12.0)
+    with_another = dict(changes=[], pushes=[(2.0, np.array([0.0, 1.0, -20.0]), 1.0), (3.4, np.array([0.0, 0.0, 20.0]), 0.2)])
+    assert [x["rise_mm"] for x in score(press, with_another, cfg)["pushes"]] == [None, None]   # not alone; not a press
+    sm = summarise([s], [p], cfg)
+    assert sm["compensated"]["all"]["yes"] == 3 and sm["to_right_s"]["no_push"]["attach"]["median"] == pytest.approx(0.6)
+    assert sm["ignored_load"]["over_target"] == 1 and sm["kept_after_gone"]["over_target"] == 1
+    assert sm["pushes"]["sideways"]["yes"] == 1 and sm["presses_withdrawn"]["yes"] == 1
+    assert sm["press_rise_mm"]["over_target"] == 1 and sm["push_only_outlived"]["over_target"] == 0
+    # a removal never withdrawn: never right, the load before it kept to the end; then one never rested
+    rec = _trace(4.0, [(1.2, 4.0, 1.0)])
+    rec.theta[(rec.t >= 1.0 - 1e-9) & (rec.t < 2.0 - 1e-9), 0] = 1.0
+    ep = dict(changes=[dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach"),
+                       dict(t=2.0, m=0.0, r=np.zeros(3), kind="removal")], pushes=[])
+    attach, removal = score(rec, ep, cfg)["changes"]
+    assert removal["to_right_s"] is None and removal["compensated"] is False and removal["kept_s"] == pytest.approx(2.0)
+    assert attach["to_right_s"] == pytest.approx(0.2)
+    rec.dq[(rec.t >= 2.0 - 1e-9) & (rec.t < 3.75 - 1e-9)] = 0.05   # calm only 0.25 s after the removal: never rested
+    assert score(rec, ep, cfg)["changes"][1]["compensated"] is None
