@@ -61,6 +61,7 @@ class _Due:
     level: np.ndarray | None = None
     job: object = None
     phi_cov: np.ndarray | None = None    # for "back": the covariance (4, 4) of the earlier phi restored
+    asked: int = 0                       # the sample the estimate was asked at (its Estimate.t)
 
 
 class RME:
@@ -263,9 +264,7 @@ class RME:
         self._still = self._still + 1 if np.abs(dq).max() < s.rest_speed else 0
         due, S = self._due, s.changes.short
         if due is not None and due.job is not None and due.job.done():
-            self._decided(*due.job.result(), due.level, due.kind, due.refine)
-        elif due is not None and due.job is None and self._k >= due.at:
-            self._apply(due, Y, J)
+            self._decided(*due.job.result(), due.level, due.kind, due.refine, due.asked)
         elif due is None and self.detector is not None:
             self._algorithm_1(q, r, J)
         elif due is None and self.model.reference is None:            # the first level: the robot's own bias
@@ -273,6 +272,9 @@ class RME:
                 self.model.set_reference(q, self._gradient(q))
         elif due is None and self._k % 5 == 0:
             self._step(q, Y, J)
+        due = self._due
+        if due is not None and due.job is None and self._k >= due.at:
+            self._apply(due, Y, J)
         comp = -(Y @ self._phi) if tool is None else -(Y @ self._phi) - tool
         self._last = np.minimum(np.maximum(comp, -self._limit), self._limit)
         return self._last
@@ -285,6 +287,8 @@ class RME:
             level, self._refine = self._refine, None
             return self._estimate_now(s.window, level, "at rest", refine=False)
         if m.departure(q, Y) <= s.changes.detect:
+            if m.settling() > s.changes.detect:
+                return                       # on its way somewhere: not yet a departure, not quiet either
             self._since, self._wrench, self._refused = None, False, None
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
@@ -294,10 +298,11 @@ class RME:
             return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
         self.verdicts.append((k / s.rate, v))
-        if v.sure < s.changes.confidence:
+        young = k - self._since < s.changes.patience * s.rate
+        if v.sure < (s.changes.confidence if young else 0.5):
             return                                                     # undecided: more samples
         if v.best == "payload":
-            if v.mass_std > max(0.05 * v.phi[0], 0.025) and k - self._since < 0.3 * s.rate:
+            if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
                 return                       # the level still moves with the arm: its mass not yet known to 5 %
             if self._refused is not None and m.same(v.d, self._refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
@@ -345,13 +350,14 @@ class RME:
         prepare = getattr(self.executor, "prepare", None)
         if prepare is not None:
             prepare(Qw, Tw)
-        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw))
+        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw), asked=self._k)
 
-    def _decided(self, e, S, level, kind, refine):
-        """An estimate of the window referred to `level` is back: applied (after its own wall time, if
-        settings.asynchronous, or from the next sample with an executor) if the arm can carry it."""
+    def _decided(self, e, S, level, kind, refine, asked=None):
+        """An estimate of the window referred to `level`, asked at sample `asked` (None: now), is back: applied
+        (after its own wall time, if settings.asynchronous, or from the next sample with an executor) if the arm can
+        carry it."""
         s = self.settings
-        e.t, e.kind = self._k / s.rate, kind
+        e.t, e.kind = (self._k if asked is None else asked) / s.rate, kind
         e.accepted = self._plausible(e.mean)
         self.history.append(e)
         self._due = None

@@ -69,14 +69,14 @@ def test_the_moving_target_keeps_the_storage_function_from_rising():
 
 
 def test_both_windows_refer_to_the_level_rme_referred_its_estimate_to(realistic):
-    """The reference level is RME's own: the mean tau_ext over 2 changes.short consecutive samples, at rest, before
-    the attach (0.75 s)."""
+    """The reference level is RME's own: the mean tau_ext over 2 changes.short consecutive samples before the attach
+    (0.75 s)."""
     rec, _ = realistic
     (x,), L = rec.exploration, 2 * RMESettings().changes.short
     c = np.cumsum(np.vstack([np.zeros(7), rec.tau_ext]), axis=0)
     gap = np.abs((c[L:] - c[:-L]) / L - x.base).max(axis=1)     # each window's mean against the baseline
     (k,) = np.flatnonzero(gap < 1e-12)[:1]
-    assert rec.t[k + L - 1] < 0.75 and np.abs(rec.dq[k:k + L]).max() < RMESettings().rest_speed
+    assert rec.t[k + L - 1] < 0.75
 
 
 @pytest.mark.slow

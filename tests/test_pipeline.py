@@ -93,7 +93,7 @@ def test_rme_returns_the_arm_to_its_pose_and_without_it_the_arm_sags():
     err_none, _, _ = closed_loop(False, theta)
     before = err_rme[900]                                  # the offset of the realistic plant before the load
     kinds = [e.kind for e in est.history if e.accepted]
-    assert kinds in (["detection"], ["detection", "at rest"]) and est.history[0].t - 1.0 < 0.5   # within 500 ms
+    assert kinds[0] == "detection" and "back" not in kinds and est.history[0].t - 1.0 < 0.5   # within 500 ms
     assert err_none[-1] > before + 0.012                   # uncompensated: sags by more than 12 mm
     assert err_rme[-1] < before + 0.004                    # with RME: back within 4 mm of where it held
     assert np.all(np.isfinite(taus)) and np.all(np.abs(taus) <= np.r_[[87.0] * 4, [12.0] * 3] + 1e-9)
@@ -101,15 +101,14 @@ def test_rme_returns_the_arm_to_its_pose_and_without_it_the_arm_sags():
 
 def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_says(monkeypatch):
     import vi
-    settings = RMESettings(asynchronous=False, monitor=False, hold_axial=0.0)
-    object.__setattr__(settings, "min_explained", -np.inf)   # no gates (beyond what settings accept): every estimate
-    object.__setattr__(settings, "max_com", 10.0)            #   reaches the clip
+    settings = RMESettings(asynchronous=False)
+    object.__setattr__(settings, "max_com", 10.0)            # (beyond what settings accept): the estimate reaches the clip
     est = RME(weights=None, settings=settings)
     outputs = iter([np.full(4, np.nan), np.array([3.5, 5.0, -5.0, 5.0])])   # the gate allows 1.2 max_mass
 
-    def broken_fit(*args, **kwargs):
+    def broken_fit(*args, **kwargs):                  # the first two estimates broken, the later ones as they are
         post = vi_fit(*args, **kwargs)
-        post.mean = next(outputs)
+        post.mean = next(outputs, post.mean)
         return post
     vi_fit = vi.fit
     monkeypatch.setattr(vi, "fit", broken_fit)
@@ -117,15 +116,18 @@ def test_update_never_emits_nan_or_torque_beyond_limits_whatever_the_estimator_s
     plant = Plant(PlantConfig.ideal())
     ctrl = CPIC(plant.robot, Attractor(*plant.robot.ee_pose(Q_READY)), CPICConfig(payload_com=1.0))   # as the clip
 
+    thetas = []
+
     class Checked:                                     # the runner's estimator, every output checked
         def update(self, q, dq, tau_ext):
             comp = est.update(q, dq, tau_ext)
             assert np.all(np.isfinite(comp)) and np.all(np.abs(comp) <= np.r_[[87.0] * 4, [12.0] * 3])
+            thetas.append(est.theta.copy())
             return comp
     run(plant, ctrl, 2.3, Checked(), [PayloadChange(0.6, 1.0, (0.0, 0.0, 0.1)), PayloadChange(1.5, 2.0, (0.0, 0.0, 0.1))],
         q0=Q_READY, tau_ext_to_controller=False)
-    assert len(est.history) == 2 and np.isnan(est.history[0].mean).all()
-    np.testing.assert_array_equal(est.theta, [3.0, 1.0, -1.0, 1.0])     # 3.5 kg at 5 m, clipped to the limits
+    assert np.isnan(est.history[0].mean).all() and not est.history[0].accepted
+    assert any(np.array_equal(t, [3.0, 1.0, -1.0, 1.0]) for t in thetas)   # 3.5 kg at 5 m, clipped to the limits
 
 
 @pytest.mark.slow

@@ -35,7 +35,7 @@ def stream(est, steps, changes, noise_seed=1, paced=False, each=None):
             time.sleep(max(start + 1e-3 * k - time.perf_counter(), 0.0))
         t0 = time.perf_counter()
         est.update(Q_READY, np.zeros(7), tau)
-        seconds[k], busy[k] = time.perf_counter() - t0, est._job is not None
+        seconds[k], busy[k] = time.perf_counter() - t0, est._due is not None and est._due.job is not None
         if each is not None:
             each(k)
     return seconds, busy
@@ -62,11 +62,11 @@ def test_a_job_gives_the_same_estimate_a_few_samples_later_and_update_stays_fast
     np.testing.assert_allclose(e.mean, e_ref.mean, rtol=0, atol=1e-9)
     np.testing.assert_allclose(e.std, e_ref.std, rtol=0, atol=1e-9)
     assert e_ref.applied == e_ref.t                                  # within the loop: on the detection sample
-    # after the detection's sample: its 3 further steps (reference level, payload test, the job: a thread pool has no
-    # prepare), the job's wall time, then a sample each to receive, judge and apply it. The job's wall time is its own
-    # compute time (e.seconds) plus its waits for the interpreter lock and a CPU: up to as much again on a busy machine
+    # after the detection's sample, the job's wall time, then a sample each to receive and apply it. The job's wall
+    # time is its own compute time (e.seconds) plus its waits for the interpreter lock and a CPU: up to as much again
+    # on a busy machine
     delay = round((e.applied - e.t) * 1e3)
-    assert 6 <= delay <= 6 + 2 * math.ceil(1e3 * e.seconds) + 4, (e.t, e.applied, e.seconds)
+    assert 2 <= delay <= 2 + 2 * math.ceil(1e3 * e.seconds) + 4, (e.t, e.applied, e.seconds)
     assert busy.sum() >= 1
     assert 1e3 * np.median(seconds[busy]) < 1.0, np.sort(seconds[busy])   # the estimate is not in it
     assert abs(est.theta[0] - THETA_A[0]) <= 0.08
@@ -93,24 +93,22 @@ class HeldExecutor(Executor):
             future.set_result(fn(*args, **kwargs))
 
 
-def test_a_change_requested_while_a_job_is_in_flight_is_not_lost():
-    """Payload A is detected and its job held; B is attached meanwhile and detected: that request waits, and is
-    formed, under A's compensation, once A's job is done. The second estimate is the total A + B."""
-    pool, queued = HeldExecutor(), []
+def test_a_change_made_while_a_job_is_in_flight_is_not_lost():
+    """Payload A is detected and its job held; B is attached meanwhile. Once A's job is done and applied, the level
+    B left departs from the reference under A's compensation: it is judged and estimated then, as the total A + B."""
+    pool = HeldExecutor()
     est = RME(Robot.panda(), settings=SYNC, rng=np.random.default_rng(0), executor=pool)
 
     def each(k):
-        queued.append(est._queued is not None)
         if k == 1700:
             pool.release()
-    stream(est, 2000, [(700, THETA_A), (1300, THETA_B)], each=each)
+    stream(est, 2200, [(700, THETA_A), (1300, THETA_B)], each=each)
     detections = [e for e in est.history if e.kind == "detection"]
-    assert any(queued[1300:1700]) and not any(queued[:1300])          # B was asked for while A's job was held
     assert len(detections) >= 2 and all(e.accepted for e in detections[:2]), [(e.t, e.reason) for e in detections]
-    assert detections[0].t < 1.3 < detections[1].t < 1.7 <= detections[1].applied   # requested, applied [s]
+    assert detections[0].t < 1.3 and 1.7 <= detections[0].applied < detections[1].t      # asked, applied [s]
     assert abs(detections[0].mean[0] - THETA_A[0]) <= 0.08
     assert abs(detections[1].mean[0] - (THETA_A[0] + THETA_B[0])) <= 0.14, detections[1].mean
-    assert detections[1].applied >= 1.7 and abs(est.theta[0] - (THETA_A[0] + THETA_B[0])) <= 0.14
+    assert abs(est.theta[0] - (THETA_A[0] + THETA_B[0])) <= 0.14
 
 
 # --- the worker process (robot/worker.py) -------------------------------------------------------------------
@@ -237,15 +235,16 @@ def test_the_worker_process_runs_one_thread_below_the_loop():
 
 
 @pytest.mark.slow
-def test_a_load_centred_below_the_flange_is_held_then_estimated_by_the_worker_process():
-    """The press hold with the estimates in a worker process, as on a robot: 1 kg 5 cm straight below the flange at
-    the hold pose is held at its detection and estimated once it has lasted hold_axial (2.5 s), at rest."""
+def test_a_load_centred_below_the_flange_is_estimated_by_the_worker_process():
+    """With the estimates in a worker process, as on a robot: 1 kg 5 cm straight below the flange at the hold pose
+    (to the torques, a press through the flange) is taken for the load it looks like, within 0.5 s."""
     from robot.worker import EstimatorSpec, ProcessWorker
     spec = EstimatorSpec(seed=4)
     with ProcessWorker(spec) as worker:
         backend = franka.SimBackend(np.random.default_rng(3), payload=[(1.0, 1.0, (0.0, 0.0, 0.05))])
         est = spec.build(executor=worker)
-        franka.run_loop(backend, ROBOT, franka.make_controller(ROBOT, backend.initial.q, "hold"), est, seconds=4.5)
+        franka.run_loop(backend, ROBOT, franka.make_controller(ROBOT, backend.initial.q, "hold"), est, seconds=3.0)
     applied = [e for e in est.history if e.accepted]
-    assert est.changes_held == 1 and len(applied) == 1, [(e.t, e.kind, e.accepted) for e in est.history]
-    assert applied[0].kind == "at rest" and 1.0 + 2.5 <= applied[0].t < 1.0 + 3.2 and abs(applied[0].mean[0] - 1.0) < 0.05
+    assert applied and applied[0].kind == "detection" and 1.0 < applied[0].applied < 1.5, \
+        [(e.t, e.kind, e.accepted) for e in est.history]
+    assert abs(est.theta[0] - 1.0) < 0.05 and "back" not in [e.kind for e in applied]
