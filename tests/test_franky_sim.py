@@ -74,3 +74,29 @@ def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_h
     steps = np.diff(np.vstack([np.zeros((1, 7)), log["tau_cmd"]]), axis=0)
     assert np.abs(steps).max() <= 1.0 + 1e-9
     assert np.abs(log["q"] - log["q"][0]).max() < 0.1                # held (a 1 kg step sags it by a few cm)
+
+
+@pytest.mark.slow
+def test_the_identification_on_franky_sim_recovers_a_tool_fused_into_its_hand():
+    """franky-sim (another simulator, an FR3 with its hand, frictionless) through pylibfranka: the identification
+    motion with the flange as it is (the reference) and again with a fresh random tool of the targets' range fused
+    into the hand (robot.franky_load --tool, full inertia): mass within 1 % or 10 g and each CoM axis within 3 mm
+    of the tool (flange frame F), the motion at most 20 s, below 0.5 rad/s, at least 0.2 rad from the server's own
+    joint limits, and no push taken where there was none."""
+    pytest.importorskip("pylibfranka")
+    pytest.importorskip("franky_sim")
+    from experiments.tool_bench import draw_tool
+    from motion.tool_id import truth_of
+    from robot.franky_load import identify_client
+    from robot.identify import fit_logs, prepared
+    tool = draw_tool(np.random.default_rng(8))
+    runs = [identify_client(t) for t in (None, tool)]
+    for log, summary, _, limits in runs:
+        assert summary["abandoned_at_s"] is None and summary["seconds"] <= 20.0 + 1e-6
+        assert np.abs(log["dq"]).max() < 0.5
+        assert np.minimum(log["q"] - limits[:, 0], limits[:, 1] - log["q"]).min() >= 0.2
+    fit = fit_logs(ROBOT, prepared(runs[1][0]), prepared(runs[0][0]))
+    truth = truth_of(tool)
+    assert abs(fit.value["mass"] - truth["mass"]) <= max(0.01 * truth["mass"], 0.01), (fit.value, truth)
+    for k in ("com_x", "com_y", "com_z"):
+        assert abs(fit.value[k] - truth[k]) <= 0.003, (k, fit.value, truth)
