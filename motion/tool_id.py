@@ -17,8 +17,9 @@ NAMES = ("mass", "com_x", "com_y", "com_z", "Ixx", "Iyy", "Izz", "Ixy", "Ixz", "
 
 @dataclass(frozen=True)
 class ToolFitSettings:
-    every: int = 10                 # samples between rows (the log's 51-sample filters: neighbours overlap)
-    edge: int = 50                  # samples left out at each end (the filters' edges)
+    every: int = 10                 # samples between rows (the log's 77-sample filters, robot.identify.LOG: neighbours
+    #                                overlap)
+    edge: int = 50                  # samples left out at each end (the filters' edges, half a window and more)
     friction_widths: tuple = (0.02, 0.1)   # rad/s: tanh(dq / w) per joint beside dq, ddq and 1 (Gaz et al. 2019's
     #                                sigmoid friction has widths 2 / p2 = 0.1-0.4 rad/s; the narrower one for stiction)
     resolution: tuple = (0.01, 0.003, 0.15)   # what a parameter must be known to, at 2 std, to count as observed:
@@ -27,7 +28,7 @@ class ToolFitSettings:
     reference_tolerance: float = 0.05   # rad: rms q difference over the motion for a reference to be the same
     #                                motion (a 1 kg tool sags joint 6 by 0.025 rad rms under its 50 Nm/rad spring)
     hac_lags: int = 30              # rows (0.3 s) over which the residual's correlation is summed in the std
-    #                                (the 51-sample filters span 5 rows; the arm's error varies more slowly)
+    #                                (the 77-sample filters span 8 rows; the arm's error varies more slowly)
     state_difference: bool = True   # referred: partial out each joint's friction and rotor inertia of the
     #                                difference between the two motions (the tool's weight and inertia make the arm
     #                                track the reference a little differently; the drives' own torques differ with it)
