@@ -3,6 +3,7 @@ from a run or a log (python rme.py identify LOG), the report in the forms users 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 
@@ -14,6 +15,7 @@ from motion.inertia import rigid_body
 from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
 from motion.tool_id import NAMES, ToolFit, fit_tool, truth_of
 from motion.tool_motion import ExcitationController, MotionSettings
+from motion.tool_storage import storage_check
 
 NOISE_STREAM = 1000     # the --sim plant's sensor noise of run k is drawn from seed + NOISE_STREAM + k
 LOG = LogConfig(sg_window=0.075)   # s: the widest Savitzky-Golay window (order 3) that passes the motion's content,
@@ -116,6 +118,11 @@ def format_text(rep: dict) -> str:
         lines.append(f"motion: {m.get('seconds')} s, abandoned at {m.get('abandoned_at_s')} s, max |dq| "
                      f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
                      f"closest limit {m.get('min_limit_distance_rad')} rad")
+        if "storage" in m:
+            st = m["storage"]
+            lines.append(f"storage check (this motion with this tool on the ideal plant, its weight compensated): the "
+                         f"largest rise of S beyond the set point's work in a step {st['max_rise']:.1e} J, "
+                         f"{'passive' if st['passive'] else 'NOT PASSIVE'} (tolerance {st['tolerance']:.0e} J)")
     return "\n".join(lines)
 
 
@@ -129,7 +136,8 @@ def _emit(rep, args, fit):
 def franka_identify(args, run_loop, make_backend) -> int:
     """franka.py --identify: with --sim, a reference motion with the flange empty and then the motion with the tool
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
-    --log FILE with the flange empty) if given. Prints the report (--json), writes --save and --log. run_loop and
+    --log FILE with the flange empty) if given. Prints the report (--json) with the storage check of this motion with
+    the tool found (motion.tool_storage, about 15 s), writes --save and --log. run_loop and
     make_backend: franka.py's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
     if args.dry_run or (args.sim_tool is not None and not args.sim):
         raise ValueError(f"--identify: expected a motion (no --dry-run) and --sim-tool only with --sim, found "
@@ -152,6 +160,7 @@ def franka_identify(args, run_loop, make_backend) -> int:
     if args.log:
         np.savez(args.log, **log, tau_ext_sign="paper")
     fit = fit_logs(robot, prepared(log), reference)
+    summary["storage"] = dataclasses.asdict(storage_check(fit.tool, backend.initial.q))   # this motion, this tool
     return _emit(report(fit, truth, summary), args, fit)
 
 
