@@ -1,6 +1,6 @@
 """franky-sim (a simulated Franka FCI server on MuJoCo) with a load that can be added to the simulated hand while a
 client runs (`python -m robot.franky_load --mass 1 --com 0.03 -0.02 0.05`; SIGUSR1 adds it at the next 1 ms tick), or a
-tool fused into the hand from the start (`--tool M CX CY CZ IXX IYY IZZ`); the physics only, not the server's model."""
+tool fused into the hand from the start (`--tool M CX CY CZ` and its inertia); the physics only, not the server's model."""
 from __future__ import annotations
 
 import argparse
@@ -163,7 +163,7 @@ def identify_client(tool=None, seconds=None, hostname: str = "127.0.0.1", start_
     robot = Robot.panda()
     with _server(options, hostname, 600.0, start_timeout):
         backend = FrankySimBackend(hostname, realtime=False)
-        limits = backend._model.jnt_range[[backend._model.dof_jntid[a] for a in backend._dof_adr]].copy()
+        limits = backend.joint_limits()
         log, summary, controller = run_motion(backend, robot, run_loop, seconds=seconds)
     return log, summary, controller, limits
 
