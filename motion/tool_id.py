@@ -17,8 +17,9 @@ NAMES = ("mass", "com_x", "com_y", "com_z", "Ixx", "Iyy", "Izz", "Ixy", "Ixz", "
 
 @dataclass(frozen=True)
 class ToolFitSettings:
-    every: int = 10                 # samples between rows (the log's 51-sample filters: neighbours overlap)
-    edge: int = 50                  # samples left out at each end (the filters' edges)
+    every: int = 10                 # samples between rows (the log's 77-sample filters, robot.identify.LOG: neighbours
+    #                                overlap)
+    edge: int = 50                  # samples left out at each end (the filters' edges, half a window and more)
     friction_widths: tuple = (0.02, 0.1)   # rad/s: tanh(dq / w) per joint beside dq, ddq and 1 (Gaz et al. 2019's
     #                                sigmoid friction has widths 2 / p2 = 0.1-0.4 rad/s; the narrower one for stiction)
     resolution: tuple = (0.01, 0.003, 0.15)   # what a parameter must be known to, at 2 std, to count as observed:
@@ -27,10 +28,15 @@ class ToolFitSettings:
     reference_tolerance: float = 0.05   # rad: rms q difference over the motion for a reference to be the same
     #                                motion (a 1 kg tool sags joint 6 by 0.025 rad rms under its 50 Nm/rad spring)
     hac_lags: int = 30              # rows (0.3 s) over which the residual's correlation is summed in the std
-    #                                (the 51-sample filters span 5 rows; the arm's error varies more slowly)
+    #                                (the 77-sample filters span 8 rows; the arm's error varies more slowly)
     state_difference: bool = True   # referred: partial out each joint's friction and rotor inertia of the
     #                                difference between the two motions (the tool's weight and inertia make the arm
     #                                track the reference a little differently; the drives' own torques differ with it)
+    drift: bool = True              # referred: each joint's sensor offset may differ between the two runs (a Panda's
+    #                                torque sensors drift with temperature: 0.05-0.08 Nm between windows minutes
+    #                                apart on the beam logs, docs/real_logs.md); a constant per joint is partialled
+    #                                out with the drives' terms (the mass then comes from the weight's change over
+    #                                the cone's poses, not from its level at the start pose)
     fit: FitSettings = field(default_factory=lambda: FitSettings(prior_std=(5.0, 1.0, 1.0, 1.0), inertia_std=1.0))
     #                                a weak prior: 5 kg, 1 kg m, 1 kg m^2 (the data decide)
 
@@ -105,7 +111,10 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         pi, info = fit_inertia(Yr, tr, np.zeros(4), None, s.fit)
     else:       # referred: the offsets are the reference's too; what the drives add for the states' difference stays
         Z = nuisance(dq, ddq, s.friction_widths) - nuisance(dq_ref[rows], ddq_ref[rows], s.friction_widths)
-        Yr, tr = partial_out(Y, tau, Z) if s.state_difference else (Y, tau)
+        Z[:, :, 0] = 1.0 if s.drift else 0.0             # the offsets' column (1 - 1 = 0 in the difference)
+        if not s.state_difference:
+            Z = Z[:, :, :1]
+        Yr, tr = partial_out(Y, tau, Z) if s.state_difference or s.drift else (Y, tau)
         pi, info = fit_inertia(Yr, tr, np.zeros(4), None, dataclasses.replace(s.fit, offsets=False))
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)

@@ -42,8 +42,11 @@ class MotionSettings:
     #                                alike with and without the tool (a 1 kg tool's weight otherwise sags joint 6 by
     #                                0.025 rad, and the arm's own pose-dependent error differs by that much)
     settle: float = 0.25           # s: the watch starts after this (a momentum observer, K = 100 /s, and the first
-    #                                commands settle; the reference is at rest until settings.rest); its
-    #                                compensation then fades in over 0.2 s (the arm's whole static torque: no jolt)
+    #                                commands settle; the reference is at rest until settings.rest)
+    fade: float = 0.45             # s over which the compensation then fades in (the arm's whole static torque:
+    #                                the arm, sagged under the tool's weight at first, is lifted back within the rest;
+    #                                on franky-sim a 0.8 kg tool sagged joint 2 by 10 mrad, and lifting it back in
+    #                                0.2 s swung the arm enough for the watch to take it for a push, 2.7 Nm)
 
 
 def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings()):
@@ -168,7 +171,7 @@ class ExcitationController:
             tau = self.robot.inverse_dynamics(q, dq, self.ddq_d[i]) + self.kp * (self.q_d[i] - q) + \
                 self.kd * (self.dq_d[i] - dq)
         if self.settings.compensate:                     # tau_ext's sign: the torque the tool applies, undone, faded
-            fade = min(max((self.k - self.watch.start) / (0.2 * self.settings.rate), 0.0), 1.0)   # in over 0.2 s
+            fade = min(max((self.k - self.watch.start) / (self.settings.fade * self.settings.rate), 0.0), 1.0)
             tau = tau - fade * self.watch.predicted
         self.k += 1
         return (tau if compensation is None else tau + compensation), None

@@ -140,6 +140,11 @@ class FrankySimBackend(PylibfrankaBackend):
                 self._data.qpos[self._model.jnt_qposadr[j]] = finger
         super().__init__(ip, **kwargs)
 
+    def joint_limits(self) -> np.ndarray:
+        """(7, 2) [rad]: the simulated arm's own joint ranges (franky-sim's MJCF: an FR3's, not the Panda's)."""
+        m = self._model
+        return m.jnt_range[[int(m.dof_jntid[a]) for a in self._dof_adr]].copy()
+
     def gravity(self, q) -> np.ndarray:
         """G(q) (7,) [Nm] of the simulated arm and hand at rest."""
         m, d, mj = self._model, self._data, self._mj

@@ -3,19 +3,26 @@ from a run or a log (python rme.py identify LOG), the report in the forms users 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 
 import numpy as np
 
-from diagnosis.logs import load_log, prepare
+from diagnosis.logs import LogConfig, load_log, prepare
 from dynamics import Robot
 from motion.inertia import rigid_body
 from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
 from motion.tool_id import NAMES, ToolFit, fit_tool, truth_of
 from motion.tool_motion import ExcitationController, MotionSettings
+from motion.tool_storage import storage_check
 
 NOISE_STREAM = 1000     # the --sim plant's sensor noise of run k is drawn from seed + NOISE_STREAM + k
+LOG = LogConfig(sg_window=0.075)   # s: the widest Savitzky-Golay window (order 3) that passes the motion's content,
+#   up to 3 Hz (twice the fastest oscillation, 1.5 Hz: products of two), within 0.1 % (0.999 at 3 Hz; 0.1 s: 0.997).
+#   dq's noise differentiated into ddq falls with the window: on the realistic plant the 51-sample default leaves
+#   0.04-0.07 rad/s^2 rms on the wrist, above the 0.02-0.10 rad/s^2 by which the tool and the reference run's ddq
+#   differ, whose drive torques the fit partials out (docs/tool_identification.md)
 
 
 def sim_payload(values, later=()) -> list:
@@ -57,8 +64,9 @@ def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = Motio
 
 
 def prepared(log: dict):
-    """A franka.py run's arrays as a diagnosis Log (stale rows dropped, filtered, ddq)."""
-    return prepare({k: np.asarray(log[k]) for k in ("t", "q", "dq", "tau_J", "tau_ext") if k in log}, source="run")
+    """A franka.py run's arrays as a diagnosis Log (stale rows dropped, filtered as LOG says, ddq)."""
+    return prepare({k: np.asarray(log[k]) for k in ("t", "q", "dq", "tau_J", "tau_ext") if k in log}, LOG,
+                   source="run")
 
 
 def torque_of(robot: Robot, log) -> np.ndarray:
@@ -110,6 +118,11 @@ def format_text(rep: dict) -> str:
         lines.append(f"motion: {m.get('seconds')} s, abandoned at {m.get('abandoned_at_s')} s, max |dq| "
                      f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
                      f"closest limit {m.get('min_limit_distance_rad')} rad")
+        if "storage" in m:
+            st = m["storage"]
+            lines.append(f"storage check (this motion with this tool on the ideal plant, its weight compensated): the "
+                         f"largest rise of S beyond the set point's work in a step {st['max_rise']:.1e} J, "
+                         f"{'passive' if st['passive'] else 'NOT PASSIVE'} (tolerance {st['tolerance']:.0e} J)")
     return "\n".join(lines)
 
 
@@ -123,7 +136,8 @@ def _emit(rep, args, fit):
 def franka_identify(args, run_loop, make_backend) -> int:
     """franka.py --identify: with --sim, a reference motion with the flange empty and then the motion with the tool
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
-    --log FILE with the flange empty) if given. Prints the report (--json), writes --save and --log. run_loop and
+    --log FILE with the flange empty) if given. Prints the report (--json) with the storage check of this motion with
+    the tool found (motion.tool_storage, about 15 s), writes --save and --log. run_loop and
     make_backend: franka.py's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
     if args.dry_run or (args.sim_tool is not None and not args.sim):
         raise ValueError(f"--identify: expected a motion (no --dry-run) and --sim-tool only with --sim, found "
@@ -131,7 +145,7 @@ def franka_identify(args, run_loop, make_backend) -> int:
     robot = Robot.panda()
     truth = None if args.sim_tool is None else make_tool(args.sim_tool[0], args.sim_tool[1:4],
                                                          np.diag(args.sim_tool[4:7]), "--sim-tool")
-    reference = None if args.reference is None else load_log(args.reference)
+    reference = None if args.reference is None else load_log(args.reference, LOG)
     if args.sim:
         if reference is None:
             reference = prepared(run_motion(sim_backend(args.seed, None, 0), robot, run_loop)[0])
@@ -146,6 +160,7 @@ def franka_identify(args, run_loop, make_backend) -> int:
     if args.log:
         np.savez(args.log, **log, tau_ext_sign="paper")
     fit = fit_logs(robot, prepared(log), reference)
+    summary["storage"] = dataclasses.asdict(storage_check(fit.tool, backend.initial.q))   # this motion, this tool
     return _emit(report(fit, truth, summary), args, fit)
 
 
@@ -159,8 +174,8 @@ def log_main(argv=None, prog: str = "rme.py identify") -> int:
     args = ap.parse_args(argv)
     robot = Robot.panda()
     try:
-        log = load_log(args.log)
-        reference = None if args.reference is None else load_log(args.reference)
+        log = load_log(args.log, LOG)
+        reference = None if args.reference is None else load_log(args.reference, LOG)
         fit = fit_logs(robot, log, reference)
     except ValueError as err:
         print(f"{prog}: {err}", file=sys.stderr)

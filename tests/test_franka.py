@@ -349,7 +349,7 @@ def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, 
     """franka.py --identify --sim --sim-tool on a fresh plant and tool (seeded draw): --json's mass, com, inertia
     (flange frame) near the tool given, to the targets for mass (1 % or 10 g) and CoM (3 mm per axis) and to 40 % for
     the inertia's diagonal (its 15 % target is missed on some tools: docs/tool_identification.md); the motion slow
-    and inside the limits, no push seen; the forms beside them; tool.json written."""
+    and inside the limits, no push seen, its storage check passed; the forms beside them; tool.json written."""
     rng = np.random.default_rng(2032)
     c = rng.normal(size=3)
     tool = [rng.uniform(0.4, 1.5), *(c * rng.uniform(0.02, 0.1) / np.linalg.norm(c)), *rng.uniform(3e-3, 6e-3, 3)]
@@ -369,6 +369,7 @@ def test_identify_cli_on_the_sim_reports_the_tool_in_the_flange_frame(tmp_path, 
     assert out["libfranka_set_load"]["F_x_Cload"] == out["com"] and out["franka_ros2_set_load"]["mass"] == out["mass"]
     assert max(out["motion"]["max_abs_dq"]) < 0.5 and out["motion"]["min_limit_distance_rad"] >= 0.2
     assert out["motion"]["seconds"] <= 20.0 and out["motion"]["abandoned_at_s"] is None
+    assert out["motion"]["storage"]["passive"] and out["motion"]["storage"]["seconds"] > 18
     saved = json.loads(path.read_text())
     assert saved["mass"] == out["mass"]
 

@@ -40,6 +40,39 @@ def test_a_prepared_load_changes_the_model_as_adding_it_does():
     assert float(live.body_mass[body]) == float(ROBOT.model.body_mass[body]) + 1.0
 
 
+def test_a_tool_fused_into_a_body_moves_the_arm_as_the_tool_as_a_body_of_its_own(tmp_path):
+    """robot.franky_load.add_point_mass with an inertia (what --tool fuses into franky-sim's hand): panda.xml's link 7
+    with a random tool fused in (its CoM off the body's origin, a full inertia about it) has MuJoCo's own mass matrix
+    and bias of panda.xml with the tool added as a child body of link 7, at random states."""
+    import mujoco
+
+    from dynamics import PANDA_XML
+    from robot.franky_load import add_point_mass
+    rng = np.random.default_rng(12)
+    m, r = 0.9, rng.uniform(-0.08, 0.08, 3)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    I = Q @ np.diag([2e-3, 4e-3, 5e-3]) @ Q.T
+    xml, marker = open(PANDA_XML).read(), '<site name="flange" pos="0 0 0.107" size="0.01"/>'
+    assert marker in xml                                   # a site of link 7: the body goes into link 7
+    body = (f'<body name="tool"><inertial pos="{r[0]} {r[1]} {r[2]}" mass="{m}" fullinertia="{I[0, 0]} {I[1, 1]} '
+            f'{I[2, 2]} {I[0, 1]} {I[0, 2]} {I[1, 2]}"/></body>')
+    (tmp_path / "with_tool.xml").write_text(xml.replace(marker, marker + body))
+    separate = mujoco.MjModel.from_xml_path(str(tmp_path / "with_tool.xml"))
+    fused = mujoco.MjModel.from_xml_path(PANDA_XML)
+    add_point_mass(fused, mujoco.mj_name2id(fused, mujoco.mjtObj.mjOBJ_BODY, "link7"), m, r, I)
+    for _ in range(3):
+        q, dq = rng.uniform(-1, 1, (2, 7))
+        out = []
+        for model in (separate, fused):
+            data = mujoco.MjData(model)
+            data.qpos[:], data.qvel[:] = q, dq
+            mujoco.mj_forward(model, data)
+            M = np.zeros((model.nv, model.nv))
+            mujoco.mj_fullM(model, data, M)
+            out.append((M, data.qfrc_bias.copy()))
+        assert np.allclose(out[0][0], out[1][0], atol=1e-10) and np.allclose(out[0][1], out[1][1], atol=1e-9)
+
+
 def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_hand():
     """franky-sim (frictionless joints, see robot/franky_load.py) on 127.0.0.1; pylibfranka's loop with CPIC and RME
     (estimates in a worker process); 1 kg 5 cm along the hand's z axis and 3.6 cm off it, added to the simulated hand's physics at
@@ -74,3 +107,29 @@ def test_pylibfranka_cpic_and_rme_on_franky_sim_detect_a_kilogram_added_to_the_h
     steps = np.diff(np.vstack([np.zeros((1, 7)), log["tau_cmd"]]), axis=0)
     assert np.abs(steps).max() <= 1.0 + 1e-9
     assert np.abs(log["q"] - log["q"][0]).max() < 0.1                # held (a 1 kg step sags it by a few cm)
+
+
+@pytest.mark.slow
+def test_the_identification_on_franky_sim_recovers_a_tool_fused_into_its_hand():
+    """franky-sim (another simulator, an FR3 with its hand, frictionless) through pylibfranka: the identification
+    motion with the flange as it is (the reference) and again with a fresh random tool of the targets' range fused
+    into the hand (robot.franky_load --tool, full inertia): mass within 1 % or 10 g and each CoM axis within 3 mm
+    of the tool (flange frame F), the motion at most 20 s, below 0.5 rad/s, at least 0.2 rad from the server's own
+    joint limits, and no push taken where there was none."""
+    pytest.importorskip("pylibfranka")
+    pytest.importorskip("franky_sim")
+    from experiments.tool_bench import draw_tool
+    from motion.tool_id import truth_of
+    from robot.franky_load import identify_client
+    from robot.identify import fit_logs, prepared
+    tool = draw_tool(np.random.default_rng(8))
+    runs = [identify_client(t) for t in (None, tool)]
+    for log, summary, _, limits in runs:
+        assert summary["abandoned_at_s"] is None and summary["seconds"] <= 20.0 + 1e-6
+        assert np.abs(log["dq"]).max() < 0.5
+        assert np.minimum(log["q"] - limits[:, 0], limits[:, 1] - log["q"]).min() >= 0.2
+    fit = fit_logs(ROBOT, prepared(runs[1][0]), prepared(runs[0][0]))
+    truth = truth_of(tool)
+    assert abs(fit.value["mass"] - truth["mass"]) <= max(0.01 * truth["mass"], 0.01), (fit.value, truth)
+    for k in ("com_x", "com_y", "com_z"):
+        assert abs(fit.value[k] - truth[k]) <= 0.003, (k, fit.value, truth)
