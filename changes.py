@@ -12,7 +12,7 @@ from scipy.special import log_ndtr
 
 import checks
 
-HYPOTHESES = ("noise", "payload", "wrench", "back")
+HYPOTHESES = ("noise", "payload", "wrench", "back", "back+wrench")
 EXPECTED = math.log(10.0)   # the payload's log prior odds while the task says a load change is coming (RME.expect_change)
 
 
@@ -34,9 +34,10 @@ class ChangeSettings:
     detect: float = 24.3            # chi^2 of the level's departure from the reference that opens a judgement
                                     #   (chi2.isf(1e-3, 7): one false start a second at rest)
     confidence: float = 0.99        # posterior probability of the best hypothesis to act on at once; below it, wait
-    patience: float = 0.3           # s: then act on the most probable hypothesis (a phantom and a missed load cost
-                                    #   alike): the level of a compliant arm settles within 0.2-0.4 s of a load change
-                                    #   (CPIC on the realistic plant), after which waiting adds no evidence
+    patience: float = 0.3           # s: then, once the level no longer moves, act on the most probable hypothesis (a
+                                    #   phantom and a missed load cost alike): the level of a compliant arm settles
+                                    #   within 0.2-0.4 s of a load change (CPIC on the realistic plant), after which
+                                    #   waiting adds no evidence
 
     def __post_init__(self):
         c = checks
@@ -94,6 +95,11 @@ class Payloads:
         m = max_mass / 2                 # every payload the arm carries: m about half the rating, CoM to max_com
         return Payloads(np.array([m, 0, 0, 0]), np.array([m, m * max_com, m * max_com, m * max_com]), max_mass,
                         max_com)
+
+    def forget(self, phi):
+        """Drop phi (4,) from the earlier payloads (it is compensated again now)."""
+        kept = [(p, c) for p, c in zip(self.earlier, self.covs) if np.abs(p - np.asarray(phi)).max() > 1e-9]
+        self.earlier, self.covs = [p for p, _ in kept], [c for _, c in kept]
 
     def remember(self, phi, cov, keep: int = 3):
         """Keep phi (4,) with its covariance (4, 4) as an earlier payload (the newest `keep`)."""
@@ -196,7 +202,8 @@ class ChangeModel:
     def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds): noise (and bias), a new payload
         (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
-        ~ N(0, (push_force push_arm)^2) per axis), back to each earlier payload (no free parameter).
+        ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free parameter; the best of them),
+        and back to one under a wrench.
         Y (n, 4): the payload regressor at q; J (6, n): the flange's world Jacobian; phi (4,): compensated now;
         expected: the task announced a load change (the payload's prior odds EXPECTED)."""
         s, n = self.s, self.n
@@ -222,14 +229,19 @@ class ChangeModel:
                  zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))]) if np.abs(p - phi).max() > 1e-6]
         back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None, None)
         logs["back"] = back[0]
+        Cw = J.T @ W @ J + C0                                          # an earlier payload back under a wrench (a
+        mixed = [(gaussian_log_pdf(d - Y @ (p - phi), Cw + Y @ c @ Y.T), p, c) for _, p, c in backs]   # press let go
+        mixed = max(mixed, key=lambda b: b[0]) if mixed else (-np.inf, None, None)                   # in a push)
+        logs["back+wrench"] = mixed[0]
         logs["payload"] += EXPECTED if expected else 0.0
         top = max(logs.values())
         w = {h: math.exp(v - top) for h, v in logs.items()}
         total = sum(w.values())
         post = {h: w[h] / total for h in HYPOTHESES}
         best = max(post, key=post.get)
-        return Verdict(d, post, best, back[1] if best == "back" else new if best == "payload" else None,
-                       math.sqrt(max(cov[0, 0], 0.0)), back[2] if best == "back" else None)
+        earlier = back if best == "back" else mixed
+        return Verdict(d, post, best, earlier[1] if best.startswith("back") else new if best == "payload" else None,
+                       math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if best.startswith("back") else None)
 
     @staticmethod
     def _box(mean, var, p: Payloads) -> float:

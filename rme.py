@@ -111,6 +111,8 @@ class RME:
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
+        self.paused = False                            # True: departures are not judged (a caller moving the arm
+                                                       #   on purpose: experiments.explore); the compensation stays
         self._last = np.zeros(n)                       # the last compensation returned
         self.theta, self._phi = np.zeros(4), np.zeros(4)   # the estimate compensated; its phi = (m, m r) (1 kHz loop)
         self.history: list[Estimate] = []
@@ -270,7 +272,7 @@ class RME:
         elif due is None and self.model.reference is None:            # the first level: the robot's own bias
             if self._k >= 2 * S and (self._still >= 2 * S or self._k >= s.window):
                 self.model.set_reference(q, self._gradient(q))
-        elif due is None and self._k % 5 == 0:
+        elif due is None and self._k % 5 == 0 and not self.paused:
             self._step(q, Y, J)
         due = self._due
         if due is not None and due.job is None and self._k >= due.at:
@@ -293,12 +295,13 @@ class RME:
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
-        self._since = k if self._since is None else self._since
+        moving = m.settling() > s.changes.detect
+        self._since = k if self._since is None or moving else self._since   # (the level's age: since it settled)
         if k % 10:
             return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
         self.verdicts.append((k / s.rate, v))
-        young = k - self._since < s.changes.patience * s.rate
+        young = k - self._since < s.changes.patience * s.rate      # (a level younger than that may still change)
         if v.sure < (s.changes.confidence if young else 0.5):
             return                                                     # undecided: more samples
         if v.best == "payload":
@@ -308,7 +311,7 @@ class RME:
                 return                       # this level's estimate was refused: not again until it moves
             W = s.detection_window
             self._estimate_now(W, m.reference.level, "detection", refine=self._still < W)
-        elif v.best == "back":
+        elif v.best.startswith("back"):                     # (under a wrench too: the payload part is known)
             e = Estimate(theta_of(v.phi), np.zeros(4), np.zeros((4, 4)), np.zeros(4), np.zeros(4, dtype=bool), 0.0,
                          0, True, t=k / s.rate, kind="back", prior_source="")
             e.reason = "the level returned to what this earlier payload leaves"
@@ -380,7 +383,10 @@ class RME:
         self._due = None
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
-        self.payloads.remember(self._phi, self.model.compensated)
+        if due.kind == "back":               # the change undone: not a state to return to (a press let go)
+            self.payloads.forget(phi)
+        else:
+            self.payloads.remember(self._phi, self.model.compensated)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         self.theta, self._phi = theta, phi

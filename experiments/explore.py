@@ -175,7 +175,7 @@ class Explorer:
         self._still = self._still + 1 if np.abs(dq).max() < self.settings.still_speed else 0
         if self.ctrl.policy is not self.policy:                      # the task switched policy: follow it
             if self._phase is not None:                              # at once: its new target is not turned
-                x, self._phase = self._x, None
+                x, self._phase, self.rme.paused = self._x, None, False
                 done = ("recorded" if x.reference else "applied") if x.status == "returning" else x.status
                 x.end, x.status = self.t, done if done != "running" else "abandoned: the task changed its target"
             if isinstance(self.ctrl.policy, Attractor):
@@ -232,6 +232,7 @@ class Explorer:
         self.policy.move(0.0, self.settings.axis, self._pivot(x.windows[0][0].mean(axis=0)))
         self.log.append(x)
         self._phase, self._x = "out", x
+        self.rme.paused = True                                        # the tilt is ours: RME judges after it
 
     def _reference_at(self, q):
         """The load-free change over the tilt recorded from a start pose within reference_tolerance of q, or None."""
@@ -259,12 +260,14 @@ class Explorer:
 
     def _baseline(self, e):
         """(tau_ext level (n,), q, dq (1, n)) the estimate e was referred to: RME's reference level (what tau_ext held
-        beyond the compensated payload before the change: the robot's bias) and the pose it was taken at."""
+        beyond the compensated payload before the change: the robot's bias; RME's correction added back, as the
+        windows here are raw tau_ext) and the pose it was taken at."""
         ref = self.rme.model.reference
         if ref is None:
             q, tau, dq = self._window(self.settings.window)
             return (tau - self.robot.payload_torque(q, e.mean)).mean(axis=0), q, dq
-        return ref.level.copy(), ref.q[None].copy(), np.zeros((1, self.robot.n))
+        q, dq, c = ref.q[None].copy(), np.zeros((1, self.robot.n)), self.rme.correction
+        return ref.level + (0.0 if c is None else c.correction(q, dq).mean(axis=0)), q, dq   # as tau_ext reads it
 
     def _window(self, T):
         """The last T samples, oldest first: q, tau_ext, dq (T, n)."""
@@ -301,7 +304,7 @@ class Explorer:
             self.policy.move(x.angle_back - angle * x.angle_back / s.tilt)
             if t - x.t_back >= T:
                 self.policy.move(0.0)
-                self._phase, x.end = None, self.t
+                self._phase, x.end, self.rme.paused = None, self.t, False
                 x.status = ("recorded" if x.reference else "applied") if x.status == "returning" else x.status
         x.angle.append((self.t, self.policy.angle))
 

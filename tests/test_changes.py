@@ -147,3 +147,16 @@ def test_settings_are_checked():
         ChangeSettings(confidence=1.0)
     with pytest.raises(ValueError, match="changes.short"):
         ChangeSettings(short=5)
+
+
+def test_a_press_let_go_under_a_sideways_push_goes_back_to_the_payload_before():
+    """A press compensated as a 2 kg load is released while a sideways push acts: the level is the press's reversal
+    plus the push; the model returns to the payload before (the push is left to itself), not a wrench alone."""
+    rng = np.random.default_rng(8)
+    phi = np.array([20 / 9.81, 0, 0, 0])
+    def release_in_push(J, R, Y):
+        f = np.array([*rng.normal(0, 1, 2), 0.0])
+        f *= 15 / np.linalg.norm(f)
+        return -Y @ phi + J.T @ np.r_[f, 0, 0, 0]
+    res = verdict(rng, release_in_push, phi=phi, earlier=[np.zeros(4)])
+    assert sum(b == "back+wrench" for b, _ in res) >= 18, res
