@@ -99,7 +99,7 @@ class Detector:
     window still reaches back to that detection, rapid is also measured against the level it settled at (the mean of
     its end window, re-expressed by shift): the rest of a change that still crept within the allowance at its
     detection does not fire again. The cost: a small second change inside that detection's end window (within about
-    0.1 s of a heavy first one) is left to the consistency monitor at rest. `active`: whether the last evaluation
+    0.1 s of a heavy first one) is not detected. `active`: whether the last evaluation
     found rapid > activation_threshold (a change in the window that may yet settle and fire).
     Work per update: O(n) whatever the window length (prefix sums over a ring of window + 1 entries).
     """

@@ -21,7 +21,7 @@ __all__ = ["Q_START", "State", "paper_tau_ext", "SimBackend", "PylibfrankaBacken
            "Safety", "SafetyConfig", "make_controller", "run_loop", "own_cpu", "realtime_priority", "summarize",
            "save_log", "main"]  # backends, the loop: robot/
 LIBS = ("pylibfranka", "panda-py")
-SIM_COM = (0.03, -0.02, 0.05)   # m, ee frame: the --sim payload, off the flange axis (a load on it waits: hold_axial)
+SIM_COM = (0.03, -0.02, 0.05)   # m, ee frame: the --sim payload, off the flange axis
 
 
 # --- command line ------------------------------------------------------------------------------------------------
@@ -119,7 +119,7 @@ def main(argv=None) -> int:
         for e in summary["estimates"]:
             state = (f"applied at {e['applied']:.3f} s" if e["accepted"] else "refused") + (
                 f" ({e['reason']})" if e["reason"] else "")
-            blind = "" if e["rz_observed"] or e["kind"] == "withdrawn" else " (rz: prior, not observed at this pose)"
+            blind = "" if e["rz_observed"] or e["kind"] == "back" else " (rz: prior, not observed at this pose)"
             print(f"  {e['t']:7.3f} s  {e['kind']}: m = {e['mass']:.3f} kg, r = {e['com']} m{blind}, {state}")
         if "sim_payload" in summary:
             print("  simulated payload: m = {mass} kg, r = {com} m from {t:.3f} s".format(**summary["sim_payload"]))

@@ -302,8 +302,9 @@ class RME:
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
         self.verdicts.append((k / s.rate, v))
         young = k - self._since < s.changes.patience * s.rate      # (a level younger than that may still change)
-        if v.sure < (s.changes.confidence if young else 0.5):
-            return                                                     # undecided: more samples
+        if v.sure < (s.changes.confidence if young else 0.5) or (moving and v.best != "payload"):
+            return              # undecided; or the level still moves, when only a payload whose mass the data pin
+                                # down (below) is informed by the data rather than by the hypotheses' prior volumes
         if v.best == "payload":
             if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
                 return                       # the level still moves with the arm: its mass not yet known to 5 %

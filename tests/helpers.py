@@ -1,6 +1,5 @@
 """What several test files share: the repository's folder, RME streaming on the simulated plant held by CPIC
-(hold, SYNC), the randomised episodes regression cases were found in (found_episode), a synthetic tau_ext stream at
-the ready pose, the mass tolerance, a 3-joint planar arm's MJCF."""
+(hold, SYNC, SyncRME), the mass tolerance, a 3-joint planar arm's MJCF."""
 import os
 
 import numpy as np

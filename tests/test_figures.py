@@ -41,7 +41,7 @@ def span_labels(ax):
     return {c.get_label() for c in ax.collections + ax.patches}
 
 
-HELD = "held as a possible press on the hand until it lasted hold_axial = 2.5 s"
+HELD = "the level returned to what this earlier payload leaves"
 
 
 def test_demo_figure_shows_estimate_band_truth_errors_and_events():

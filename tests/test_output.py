@@ -66,12 +66,11 @@ def test_network_bench_labels_the_weights_files_training_time_as_recorded_not_me
 
 
 @pytest.mark.slow
-def test_a_load_held_as_a_possible_press_says_why_it_was_applied_late():
-    """A load centred below the flange looks like a hand pressing on it: RME holds it hold_axial (2.5 s), then
-    applies it, and the estimate says why; a load off that line is applied at once with no reason (seeded
-    plants)."""
+def test_a_load_centred_below_the_flange_is_applied_as_soon_as_one_off_that_line():
+    """A load centred below the flange looks like a hand pressing on it: the model takes it for the load it looks
+    like within 0.5 s, as it does a load off that line (seeded plants)."""
     from experiments import scenarios
-    for seed, r, held in ((3, (0.0, 0.0, 0.12), True), (4, (0.05, -0.03, 0.12), False)):
-        rec = scenarios.run(scenarios.Args(seed=seed), 3.7, [(1.0, np.array([0.45, *r]), None)])
+    for seed, r in ((3, (0.0, 0.0, 0.12)), (4, (0.05, -0.03, 0.12))):
+        rec = scenarios.run(scenarios.Args(seed=seed), 2.5, [(1.0, np.array([0.45, *r]), None)])
         first = next(e for e in rec.history if e.accepted)
-        assert (first.applied - 1.0 > 2.0) == held and ("hold_axial = 2.5 s" in first.reason) == held
+        assert first.kind == "detection" and first.applied - 1.0 < 0.5 and abs(first.mean[0] - 0.45) < 0.05
