@@ -167,14 +167,14 @@ class ChangeModel:
         self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.mean(S, of=self._v)),
                                    np.array(gradient, dtype=float), self._k)
 
-    def covariance(self, q, Y=None) -> np.ndarray:
+    def covariance(self, q, Y=None, moving=True) -> np.ndarray:
         """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
         noise and the reference's, friction in motion now and then, the level still moving, the robot model's error
         carried along the pose change since the reference (model_error of the gravity torque's change), and with
         the payload regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T."""
         s, ref, S = self.s, self.reference, self.s.short
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2
-        moving = self.mean(S) - self.mean(S, S)                       # how far the level moved over the last S
+        moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
         g = s.model_error * ref.gradient @ (np.asarray(q) - ref.q)
         C = np.outer(g, g)
         C.flat[::self.n + 1] += 2 * self.noise + fric + moving * moving
@@ -194,6 +194,12 @@ class ChangeModel:
         return float(d @ (d / np.diag(self.covariance(q, Y))))
 
     # --- the judgement -----------------------------------------------------------------------------
+    def explains(self, prediction, q, Y) -> bool:
+        """Whether the level's departure is `prediction` (n,) within the noise, friction and pose error alone (not
+        the allowance for a level still moving): chi^2 <= detect."""
+        u = self.mean(self.s.short) - self.reference.level - prediction
+        return bool(u @ (u / np.diag(self.covariance(q, Y, moving=False))) <= self.s.detect)
+
     def same(self, d, e, q, Y=None) -> bool:
         """Whether two departures d, e (n,) differ by less than the noise at q says a change does (chi^2 <= detect)."""
         u = np.asarray(d) - np.asarray(e)

@@ -282,8 +282,8 @@ class RME:
         return self._last
 
     def _step(self, q, Y, J):
-        """Every 5th sample: judge a departure from the reference (every 10th), learn the noise at rest, or make the
-        estimate at rest a change made in motion is owed."""
+        """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate at
+        rest a change made in motion is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         if self._refine is not None and self._still >= s.window:       # owed: the same change, friction gone
             level, self._refine = self._refine, None
@@ -297,14 +297,14 @@ class RME:
             return
         moving = m.settling() > s.changes.detect
         self._since = k if self._since is None or moving else self._since   # (the level's age: since it settled)
-        if k % 10:
-            return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
         self.verdicts.append((k / s.rate, v))
         young = k - self._since < s.changes.patience * s.rate      # (a level younger than that may still change)
-        if v.sure < (s.changes.confidence if young else 0.5) or (moving and v.best != "payload"):
+        if v.sure < (s.changes.confidence if young else 0.5) or (moving and not (v.best == "payload" or (
+                v.best == "back" and m.explains(Y @ (v.phi - self._phi), q, Y)))):
             return              # undecided; or the level still moves, when only a payload whose mass the data pin
-                                # down (below) is informed by the data rather than by the hypotheses' prior volumes
+                                # down (below) or a return the level matches within the noise alone is informed
+                                # by the data rather than by the hypotheses' prior volumes
         if v.best == "payload":
             if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
                 return                       # the level still moves with the arm: its mass not yet known to 5 %
