@@ -17,7 +17,7 @@ import checks
 import vi
 from changes import ChangeModel, Payloads
 from detector import Detector, safe_theta
-from dynamics import Robot, as_states, phi_of
+from dynamics import Robot, as_states, phi_of, theta_of
 from error_model import ErrorModel, as_error_model
 from motion.tool_forms import load_tool, phi_of_tool
 from nn_numpy import WEIGHTS, MismatchNet
@@ -313,7 +313,8 @@ class RME:
             W = s.detection_window
             self._estimate_now(W, m.reference.level, "detection", refine=self._still < W)
         elif v.best.startswith("back"):                     # (under a wrench too: the payload part is known)
-            e = Estimate(theta_of(v.phi), np.zeros(4), np.zeros((4, 4)), np.zeros(4), np.zeros(4, dtype=bool), 0.0,
+            e = Estimate(np.nan_to_num(theta_of(v.phi)), np.zeros(4), np.zeros((4, 4)), np.zeros(4),   # (no mass: r 0)
+                         np.zeros(4, dtype=bool), 0.0,
                          0, True, t=k / s.rate, kind="back", prior_source="")
             e.reason = "the level returned to what this earlier payload leaves"
             self.history.append(e)
@@ -405,12 +406,6 @@ def _phi_cov(theta, cov):
     D = np.zeros((4, 4))
     D[0, 0], D[1:, 0], D[1:, 1:] = 1.0, r, m * np.eye(3)
     return D @ np.asarray(cov) @ D.T
-
-
-def theta_of(phi):
-    """theta (4,) = (m, r) of phi (4,) = (m, m r); r = 0 without mass."""
-    m = float(phi[0])
-    return np.array([m, *(np.asarray(phi[1:]) / m if m > 1e-9 else np.zeros(3))])
 
 
 if __name__ == "__main__":          # python rme.py diagnose|calibrate|identify|plot LOG ...: the script's entry

@@ -1,5 +1,6 @@
-"""The simple things every accuracy figure is measured beside: plain least squares on the window's means, and RME
-with the authors' range noise rule (their public code's sigma_lik = max(0.25 x the joint's range, 0.1 Nm))."""
+"""The simple things every accuracy figure is measured beside: plain least squares on the window's means, RME with
+the authors' range noise rule (their public code's sigma_lik = max(0.25 x the joint's range, 0.1 Nm)), and streaming
+RME triggered by Algorithm 1 as printed instead of the model of what changed."""
 from __future__ import annotations
 
 import time
@@ -8,6 +9,7 @@ import numpy as np
 
 import vi
 from dynamics import Robot, theta_of
+from detector import ALGORITHM_1_CHECKS, DetectorSettings
 from rme import RME, Estimate, RMESettings
 
 RIDGE = 1e-6    # relative to trace(Y^T Y): keeps phi finite where rz is not seen (a level pose), pulls it to 0
@@ -41,3 +43,13 @@ def methods(robot: Robot | None = None, seed: int = 0, calibration=None) -> dict
     baselines."""
     return {"RME": RME(robot, rng=np.random.default_rng(seed), calibration=calibration),
             "range rule": range_rule(robot, seed), "least squares": LeastSquares(robot)}
+
+
+class Algorithm1RME(RME):
+    """Streaming RME whose estimates Algorithm 1 as printed fires (App. A: its 230 ms checks, the raw ||tau_ext||^2
+    test, a vertical force), each window estimated and applied if plausible: the paper's pipeline, the baseline of
+    `python sim.py reliability --estimator experiments.baselines:Algorithm1RME`."""
+
+    def __init__(self, robot: Robot | None = None, rng=None, **kwargs):
+        settings = RMESettings(detector=DetectorSettings(algorithm="as_printed", check_windows=ALGORITHM_1_CHECKS))
+        super().__init__(robot, rng=rng, settings=settings, **kwargs)
