@@ -14,6 +14,8 @@ import checks
 
 HYPOTHESES = ("noise", "payload", "wrench", "back", "back+wrench")
 EXPECTED = math.log(10.0)   # the payload's log prior odds while the task says a load change is coming (RME.expect_change)
+COMPOUND = math.log(0.25)   # a return under a wrench is two events at once: its prior, the product of two of the four
+                            #   single hypotheses' equal priors, is a quarter of one's
 
 
 @dataclass(frozen=True)
@@ -167,13 +169,13 @@ class ChangeModel:
         self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.mean(S, of=self._v)),
                                    np.array(gradient, dtype=float), self._k)
 
-    def covariance(self, q, Y=None, moving=True) -> np.ndarray:
+    def covariance(self, q, Y=None, moving=True, friction=True) -> np.ndarray:
         """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
         noise and the reference's, friction in motion now and then, the level still moving, the robot model's error
         carried along the pose change since the reference (model_error of the gravity torque's change), and with
         the payload regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T."""
         s, ref, S = self.s, self.reference, self.s.short
-        fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2
+        fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
         g = s.model_error * ref.gradient @ (np.asarray(q) - ref.q)
         C = np.outer(g, g)
@@ -201,12 +203,14 @@ class ChangeModel:
         return bool(u @ (u / np.diag(self.covariance(q, Y, moving=False))) <= self.s.detect)
 
     def same(self, d, e, q, Y=None) -> bool:
-        """Whether two departures d, e (n,) differ by less than the noise at q says a change does (chi^2 <= detect)."""
+        """Whether two departures d, e (n,) differ by less than the sensor's noise and the pose error say a change
+        does (chi^2 <= detect; friction left out: a level that moves with the arm's speed is not the same level)."""
         u = np.asarray(d) - np.asarray(e)
-        return bool(u @ (u / np.diag(self.covariance(q, Y))) <= self.s.detect)
+        return bool(u @ (u / np.diag(self.covariance(q, Y, moving=False, friction=False))) <= self.s.detect)
 
     def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False) -> Verdict:
-        """Posterior over the hypotheses for the level now (equal prior odds): noise (and bias), a new payload
+        """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and
+        bias), a new payload
         (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
         ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free parameter; the best of them),
         and back to one under a wrench.
@@ -238,7 +242,7 @@ class ChangeModel:
         Cw = J.T @ W @ J + C0                                          # an earlier payload back under a wrench (a
         mixed = [(gaussian_log_pdf(d - Y @ (p - phi), Cw + Y @ c @ Y.T), p, c) for _, p, c in backs]   # press let go
         mixed = max(mixed, key=lambda b: b[0]) if mixed else (-np.inf, None, None)                   # in a push)
-        logs["back+wrench"] = mixed[0]
+        logs["back+wrench"] = mixed[0] + COMPOUND
         logs["payload"] += EXPECTED if expected else 0.0
         top = max(logs.values())
         w = {h: math.exp(v - top) for h, v in logs.items()}

@@ -106,6 +106,7 @@ class RME:
         self.changes_not_payload = 0                   # departures the model judged an external wrench
         self._due: _Due | None = None                  # an estimate decided on, running or waiting for its time
         self._since = None                             # the sample the level first departed from the reference
+        self._level = None                             #   and settled at this departure d (n,)
         self._wrench = False                           # that departure has been judged a wrench (counted once)
         self._refused = None                           # the departure d (n,) whose estimate was not plausible
         self._refine = None                            # the reference level an estimate at rest is owed against
@@ -296,9 +297,10 @@ class RME:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
         moving = m.settling() > s.changes.detect
-        self._since = k if self._since is None or moving else self._since   # (the level's age: since it settled)
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
         self.verdicts.append((k / s.rate, v))
+        if self._since is None or moving or not m.same(v.d, self._level, q, Y):
+            self._since, self._level = k, v.d          # the level's age: since it settled where it is now
         young = k - self._since < s.changes.patience * s.rate      # (a level younger than that may still change)
         if v.sure < (s.changes.confidence if young else 0.5) or (moving and not (v.best == "payload" or (
                 v.best == "back" and m.explains(Y @ (v.phi - self._phi), q, Y)))):
@@ -387,7 +389,7 @@ class RME:
         phi = phi_of(theta)
         if due.kind == "back":               # the change undone: not a state to return to (a press let go)
             self.payloads.forget(phi)
-        else:
+        elif due.kind != "at rest":          # (at rest: the same change, estimated again)
             self.payloads.remember(self._phi, self.model.compensated)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose

@@ -39,7 +39,7 @@ DEMOS = {
                  "experiments.cli:_qp_bench", ("seed", "json")),
     "reliability": ("randomised loads, swaps, removals and pushes on random poses, tuning or test episodes: "
                     "changes compensated, how soon, pushes left alone", "experiments.reliability:main",
-                    ("split", "plant", "episodes", "jobs", "estimator", "json")),
+                    ("split", "plant", "episodes", "first", "jobs", "estimator", "json")),
     "calibration": ("coverage and sharpness of RME's 2-sigma intervals on the realistic preset, rest-window spread",
                     "experiments.calibration:main", ("seed", "json", "windows")),
     "real-logs": ("real robot logs of one unchanged load: RME beside least squares and the range rule, per rest window",
@@ -64,6 +64,9 @@ FLAGS = {
     "json": (("--json",), dict(action="store_true", help="print the results as one JSON object")),
     "episodes": (("--episodes",), dict(type=checks.argument("1..100000"), default=20,
                                        help="episodes of each kind, 1..100000")),
+    "first": (("--first",), dict(type=checks.argument("0..1000000"), default=0,
+                                 help="index of the first episode (default 0): a fresh block for a design already "
+                                      "judged on the ones before")),
     "split": (("--split",), dict(default="tuning", choices=("tuning", "test"),
                                  help="episode seeds: tuning (default) or test (only to judge a finished estimator)")),
     "plant": (("--plant",), dict(default="realistic", choices=("realistic", "harsh"), help="plant and sensors")),

@@ -328,13 +328,14 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
 
 
 def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realistic", estimator: str = "rme:RME",
-                jobs: int = 1, cfg: ReliabilityConfig = ReliabilityConfig(), log=print) -> dict:
-    """`episodes` load episodes and as many push-only ones of split/plant, in `jobs` worker processes (the results
-    do not depend on jobs; an estimator that times itself, as RME's asynchronous setting does, may)."""
+                jobs: int = 1, cfg: ReliabilityConfig = ReliabilityConfig(), log=print, first: int = 0) -> dict:
+    """`episodes` load episodes and as many push-only ones of split/plant, indices first.., in `jobs` worker
+    processes (the results do not depend on jobs; an estimator that times itself, as RME's asynchronous setting does,
+    may)."""
     estimator_class(estimator)                               # a bad spec fails here, not in a worker
     for kind in KINDS:
         episode_seed(split, plant, kind, 0)
-    tasks = [(split, plant, kind, i, cfg, estimator) for kind in KINDS for i in range(episodes)]
+    tasks = [(split, plant, kind, i, cfg, estimator) for kind in KINDS for i in range(first, first + episodes)]
     t0 = time.perf_counter()
     if jobs == 1:
         results = []
@@ -350,12 +351,12 @@ def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realist
     loads, pushes = results[:episodes], results[episodes:]
     return {"summary": summarise(loads, pushes, cfg), "episodes": loads, "push_episodes": pushes,
             "seconds": time.perf_counter() - t0,
-            "settings": dict(episodes=episodes, split=split, plant=plant, estimator=estimator, jobs=jobs)}
+            "settings": dict(episodes=episodes, first=first, split=split, plant=plant, estimator=estimator, jobs=jobs)}
 
 
 def main(args):
     res = reliability(args.episodes, args.split, args.plant, args.estimator, args.jobs,
-                      log=(lambda *a: None) if args.json else print)
+                      log=(lambda *a: None) if args.json else print, first=args.first)
     if args.plant == "realistic" and args.estimator == "rme:RME":
         res["limit_cycle"] = limit_cycle_trials(range(20))
     if args.json:

@@ -149,9 +149,10 @@ def test_settings_are_checked():
         ChangeSettings(short=5)
 
 
-def test_a_press_let_go_under_a_sideways_push_goes_back_to_the_payload_before():
+def test_a_press_let_go_under_a_sideways_push_is_no_new_payload():
     """A press compensated as a 2 kg load is released while a sideways push acts: the level is the press's reversal
-    plus the push; the model returns to the payload before (the push is left to itself), not a wrench alone."""
+    plus the push. A wrench alone explains it as well as the return under a wrench (which, two events at once, has
+    the smaller prior): never a new payload; the return comes once the push has gone (see the test above)."""
     rng = np.random.default_rng(8)
     phi = np.array([20 / 9.81, 0, 0, 0])
     def release_in_push(J, R, Y):
@@ -159,4 +160,4 @@ def test_a_press_let_go_under_a_sideways_push_goes_back_to_the_payload_before():
         f *= 15 / np.linalg.norm(f)
         return -Y @ phi + J.T @ np.r_[f, 0, 0, 0]
     res = verdict(rng, release_in_push, phi=phi, earlier=[np.zeros(4)])
-    assert sum(b == "back+wrench" for b, _ in res) >= 18, res
+    assert all(b in ("wrench", "back+wrench") for b, _ in res), res
