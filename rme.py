@@ -308,9 +308,9 @@ class RME:
                                 # down (below) or a return the level matches within the noise alone is informed
                                 # by the data rather than by the hypotheses' prior volumes
         if v.best == "payload":
-            if v.mass_std > max(0.1 * v.phi[0], 0.05) and young:
-                return                       # its mass not yet known to the tolerance the compensation is
-                                             # judged by (10 % or 50 g): the level still moves with the arm
+            if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
+                return                       # its mass not yet known to half the compensation's tolerance
+                                             # (10 % or 50 g): the level still moves with the arm
             if self._refused is not None and m.same(v.d, self._refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
             W = s.detection_window
