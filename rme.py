@@ -110,6 +110,7 @@ class RME:
         self._wrench = False                           # that departure has been judged a wrench (counted once)
         self._refused = None                           # the departure d (n,) whose estimate was not plausible
         self._refine = None                            # the reference level an estimate at rest is owed against
+        self._held_since = 0                           # the sample the compensation took its present value
         self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
         self.paused = False                            # True: departures are not judged (a caller moving the arm
@@ -385,13 +386,14 @@ class RME:
 
     def _apply(self, due, Y, J):
         """Compensate the decided estimate from now on; the residuals held are re-expressed under it."""
-        self._due = None
+        self._due, s = None, self.settings
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
         if due.kind == "back":               # the change undone: not a state to return to (a press let go)
             self.payloads.forget(phi)
-        elif due.kind != "at rest":          # (at rest: the same change, estimated again)
-            self.payloads.remember(self._phi, self.model.compensated)
+        elif due.kind != "at rest" and self._k - self._held_since >= self.settings.changes.patience * s.rate:
+            self.payloads.remember(self._phi, self.model.compensated)   # a state the arm held (not an estimate
+        self._held_since = self._k                                      #   of a change the next one corrected)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         self.theta, self._phi = theta, phi

@@ -91,7 +91,7 @@ def test_lists_of_windows_are_checked():
         vi.fit([ROBOT.payload_regressor(qa)], ta, np.zeros(4), rng=np.random.default_rng(0))
 
 
-def _tilted_hold(accumulate, seed=0, theta=(1.0, 0.03, -0.02, 0.13)):
+def _tilted_hold(seed=0, theta=(1.0, 0.03, -0.02, 0.13)):
     """Streaming RME on the realistic plant: a load at the ready pose, then the controller's target turns the ee by
     0.45 rad about world x and the arm rests there. The estimator and the true theta."""
     from cpic import CPIC, Attractor
@@ -103,25 +103,17 @@ def _tilted_hold(accumulate, seed=0, theta=(1.0, 0.03, -0.02, 0.13)):
     p0, R0 = plant.robot.ee_pose(Q_READY)
     c, s = np.cos(0.45), np.sin(0.45)
     tilted = Attractor(p0, np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) @ R0)
-    est = RME(plant.robot, settings=RMESettings(asynchronous=False, accumulate=accumulate),
-              rng=np.random.default_rng(seed + 1))
+    est = RME(plant.robot, settings=RMESettings(asynchronous=False), rng=np.random.default_rng(seed + 1))
     run(plant, CPIC(plant.robot, Attractor(p0, R0)), 6.0, est,
         [PayloadChange(1.0, theta[0], theta[1:]), PolicySwitch(3.5, tilted)], q0=Q_READY)
     return est, np.array(theta)
 
 
 @pytest.mark.slow
-def test_streaming_combines_the_windows_of_one_load_seen_from_a_new_side():
-    """At the ready pose rz is the network's guess; once the arm rests at the tilted pose the stream combines that
-    window with the one at rest (each referred to the torque before the load): rz within 10 mm, its std 3x smaller,
-    the mass unchanged within 2 %. Without accumulation the guess stays."""
-    est, theta = _tilted_hold(True)
-    rest = [e for e in est.history if e.kind == "at rest" and e.accepted][-1]
-    combined = [e for e in est.history if e.kind == "accumulated" and e.accepted]
-    assert combined, [(e.t, e.kind, e.accepted, e.reason) for e in est.history]
-    assert abs(rest.mean[3] - theta[3]) > 0.02                          # one pose: rz is the prior's
-    assert abs(est.theta[3] - theta[3]) < 0.010 and combined[-1].std[3] < rest.std[3] / 3
-    assert abs(est.theta[0] - theta[0]) < 0.02 * theta[0]
-    alone, _ = _tilted_hold(False)
-    assert not [e for e in alone.history if e.kind == "accumulated"]
-    assert abs(alone.theta[3] - theta[3]) > 0.02
+def test_a_load_carried_to_a_new_orientation_stays_compensated():
+    """The load estimated at the ready pose, then the ee turned 0.45 rad and resting there: the compensation is the
+    load's at the end (mass within 2 %, rx, ry within 5 mm); rz, which the first pose did not observe, is whatever
+    the estimates made on one window each say (combining the windows of two poses: experiments.explore)."""
+    est, theta = _tilted_hold()
+    assert abs(est.theta[0] - theta[0]) < 0.02 * theta[0], [(e.t, e.kind, e.mean.round(3)) for e in est.history]
+    assert np.abs(est.theta[1:3] - theta[1:3]).max() < 0.005
