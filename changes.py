@@ -13,7 +13,8 @@ from scipy.special import log_ndtr
 import checks
 
 HYPOTHESES = ("noise", "payload", "wrench", "back", "back+wrench")
-EXPECTED = math.log(10.0)   # the payload's log prior odds while the task says a load change is coming (RME.expect_change)
+EXPECTED = math.log(10.0)   # the payload's log prior odds while the task says a load change is coming
+                            #   (RME.expect_change)
 COMPOUND = math.log(0.25)   # a return under a wrench is two events at once: its prior, the product of two of the four
                             #   single hypotheses' equal priors, is a quarter of one's
 
@@ -235,8 +236,9 @@ class ChangeModel:
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
-        backs = [(gaussian_log_pdf(d - Y @ (p - phi), C0 + Y @ c @ Y.T), p, c) for p, c in
-                 zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))]) if np.abs(p - phi).max() > 1e-6]
+        states = zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
+        backs = [(gaussian_log_pdf(d - Y @ (p - phi), C0 + Y @ c @ Y.T), p, c) for p, c in states
+                 if np.abs(p - phi).max() > 1e-6]
         back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None, None)
         logs["back"] = back[0]
         Cw = J.T @ W @ J + C0                                          # an earlier payload back under a wrench (a

@@ -241,7 +241,8 @@ class RME:
         never NaN nor beyond the torque limits. A non-finite or absurd sample (beyond max_abs_torque) is dropped and
         counted in `dropped`. What the compensation leaves, r = tau_ext - Y(q) phi_hat, is compared with its reference
         level; a departure is judged by the model of what changed (changes.ChangeModel): a new payload is estimated
-        (network + VI on the window referred to the reference), an earlier one restored, a wrench or noise waited out."""
+        (network + VI on the window referred to the reference), an earlier one restored, a wrench or noise waited
+        out."""
         n, s = self.robot.n, self.settings
         q, dq = as_states("q", q, n, allow_window=False)[0][0], as_states("dq", dq, n, allow_window=False)[0][0]
         tau = tau_ext if type(tau_ext) is np.ndarray and tau_ext.dtype == np.float64 else checks.real_array(tau_ext)
@@ -380,7 +381,8 @@ class RME:
         self._due = _Due(e, self._k + delay, kind, refine, level)
 
     def _plausible(self, theta) -> bool:
-        """Whether theta (4,) is a payload the arm can carry: mass <= 1.2 max_mass and, from 0.1 kg on, CoM within max_com."""
+        """Whether theta (4,) is a payload the arm can carry: mass <= 1.2 max_mass and, from 0.1 kg on, CoM within
+        max_com."""
         s = self.settings
         return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
 

@@ -29,7 +29,8 @@ class RMESettings:
     changes: ChangeSettings = field(default_factory=ChangeSettings)   # what the residual holds (changes.py)
     detector: DetectorSettings | None = None   # None: the model of what changed decides (changes.py); a
                                    #   DetectorSettings: Algorithm 1 fires each estimate instead (detector.py;
-                                   #   algorithm="as_printed" with ALGORITHM_1_CHECKS: the paper's, for its reproduction)
+                                   #   algorithm="as_printed" with ALGORITHM_1_CHECKS: the paper's, for its
+                                   #   reproduction)
     vi: vi.VISettings = field(default_factory=vi.VISettings)
 
     def __post_init__(self):
