@@ -161,3 +161,13 @@ def test_a_press_let_go_under_a_sideways_push_is_no_new_payload():
         return -Y @ phi + J.T @ np.r_[f, 0, 0, 0]
     res = verdict(rng, release_in_push, phi=phi, earlier=[np.zeros(4)])
     assert all(b in ("wrench", "back+wrench") for b, _ in res), res
+
+
+def test_the_model_runs_without_mujoco():
+    """changes.py is the model alone: importing it (in a fresh interpreter) loads no MuJoCo."""
+    import subprocess
+    import sys
+    from tests.helpers import ROOT
+    code = "import sys, changes; print('mujoco' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr
