@@ -5,7 +5,7 @@ import os
 import numpy as np
 
 from cpic import CPIC, Attractor
-from dynamics import Q_READY, Robot
+from dynamics import Q_READY
 from experiments.runner import run
 from rme import RME, RMESettings
 from sim import Plant, PlantConfig

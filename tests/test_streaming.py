@@ -10,7 +10,7 @@ from dynamics import Q_READY, Robot
 from experiments.reliability import ReliabilityConfig, reliability
 from experiments.runner import PayloadChange, Push, run
 from nn_train import DataConfig, random_pose
-from rme import RME, RMESettings
+from rme import RME
 from sim import Plant, PlantConfig
 from tests.helpers import SYNC, hold, within
 
