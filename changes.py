@@ -111,9 +111,18 @@ class Payloads:
         self.earlier, self.covs = [p for p, _ in kept] + [phi], [c for _, c in kept] + [np.array(cov, dtype=float)]
 
 
+def cholesky(C):
+    """cho_factor of C (n, n), symmetric positive semi-definite: a jitter of 1e-12 of its trace where rounding (a
+    wrench's variance 1e8 times the noise's) leaves it indefinite; the 1 kHz loop never raises for it."""
+    try:
+        return cho_factor(C, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return cho_factor(C + (1e-12 * np.trace(C) + 1e-300) * np.eye(len(C)), lower=True, check_finite=False)
+
+
 def gaussian_log_pdf(x, C) -> float:
     """log N(x; 0, C) for x (n,), C (n, n) positive definite."""
-    f = cho_factor(C, lower=True, check_finite=False)
+    f = cholesky(C)
     return float(-0.5 * x @ cho_solve(f, x, check_finite=False) - np.log(np.diag(f[0])).sum()
                  - 0.5 * len(x) * math.log(2 * math.pi))
 
@@ -223,7 +232,7 @@ class ChangeModel:
         logs = {"noise": gaussian_log_pdf(d, V)}
         P = np.diag(payloads.std ** 2)
         C = Y @ P @ Y.T + V
-        f = cho_factor(C, lower=True, check_finite=False)
+        f = cholesky(C)
         e = d - Y @ (payloads.mean - phi)
         K = P @ Y.T
         new = payloads.mean + K @ cho_solve(f, e, check_finite=False)            # posterior of phi_new

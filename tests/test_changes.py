@@ -171,3 +171,19 @@ def test_the_model_runs_without_mujoco():
     code = "import sys, changes; print('mujoco' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr
+
+
+def test_a_covariance_rounding_makes_indefinite_is_factored_with_a_jitter():
+    """A wrench's variance 1e12 times the noise's leaves J^T W J + V indefinite in floating point: the evidence is
+    still finite (the 1 kHz loop never raises), and equal to the exact one where C is well conditioned."""
+    from changes import cholesky
+    rng = np.random.default_rng(9)
+    J, _, _ = arm(rng)
+    C = J.T @ np.diag([1e12] * 6) @ J + 1e-12 * np.eye(N)             # rank 6 + a hair: indefinite when rounded
+    C -= 1e-3 * np.eye(N) * np.abs(np.linalg.eigvalsh(C)).max() * 1e-12
+    x = rng.normal(size=N)
+    assert np.isfinite(gaussian_log_pdf(x, C))
+    assert cholesky(np.eye(N))[0][0, 0] == 1.0
+    A = rng.normal(size=(N, N))
+    good = A @ A.T + np.eye(N)
+    assert gaussian_log_pdf(x, good) == pytest.approx(multivariate_normal(np.zeros(N), good).logpdf(x), rel=1e-12)
