@@ -147,12 +147,10 @@ class ChangeModel:
     def mean(self, L: int, back: int = 0, of=None):
         """Mean (n,) of the L samples ending `back` samples ago (of: the ring, default r)."""
         x, N = self._r if of is None else of, len(self._r)
-        idx = np.arange(self._k - back - L, self._k - back) % N
-        return x[idx].mean(axis=0)
-
-    def window(self, L: int) -> np.ndarray:
-        """The last L residual samples (L, n), oldest first."""
-        return self._r[np.arange(self._k - L, self._k) % len(self._r)]
+        start = (self._k - back - L) % N
+        if start + L <= N:                                          # (the 1 kHz path: a slice, no index array)
+            return x[start:start + L].mean(axis=0)
+        return x[np.arange(start, start + L) % N].mean(axis=0)
 
     def shift(self, d):
         """The compensation changed by d (n,): every sample held is re-expressed as its residual under it."""
@@ -184,13 +182,24 @@ class ChangeModel:
         noise and the reference's, friction in motion now and then, the level still moving, the robot model's error
         carried along the pose change since the reference (model_error of the gravity torque's change), and with
         the payload regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T."""
+        own, g = self._parts(q, moving, friction)
+        C = np.outer(g, g)
+        C.flat[::self.n + 1] += own
+        return C if Y is None else C + Y @ self.compensated @ Y.T
+
+    def variance(self, q, Y=None, moving=True, friction=True) -> np.ndarray:
+        """The diagonal (n,) of `covariance`, without forming it (the tests of every 5th sample)."""
+        own, g = self._parts(q, moving, friction)
+        v = own + g * g
+        return v if Y is None else v + np.einsum("ij,jk,ik->i", Y, self.compensated, Y)
+
+    def _parts(self, q, moving, friction):
+        """covariance's per-joint variances (n,) and the pose error's direction g (n,) (its rank-one part g g^T)."""
         s, ref, S = self.s, self.reference, self.s.short
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
         g = s.model_error * ref.gradient @ (np.asarray(q) - ref.q)
-        C = np.outer(g, g)
-        C.flat[::self.n + 1] += 2 * self.noise + fric + moving * moving
-        return C if Y is None else C + Y @ self.compensated @ Y.T
+        return 2 * self.noise + fric + moving * moving, g
 
     def settling(self) -> float:
         """chi^2 of the level's move over the last `short` samples under the noise alone (of two short means, with
@@ -203,20 +212,20 @@ class ChangeModel:
     def departure(self, q, Y=None) -> float:
         """chi^2 of the short level's departure from the reference under `covariance` (diagonal part)."""
         d = self.mean(self.s.short) - self.reference.level
-        return float(d @ (d / np.diag(self.covariance(q, Y))))
+        return float(d @ (d / self.variance(q, Y)))
 
     # --- the judgement -----------------------------------------------------------------------------
     def explains(self, prediction, q, Y) -> bool:
         """Whether the level's departure is `prediction` (n,) within the noise, friction and pose error alone (not
         the allowance for a level still moving): chi^2 <= detect."""
         u = self.mean(self.s.short) - self.reference.level - prediction
-        return bool(u @ (u / np.diag(self.covariance(q, Y, moving=False))) <= self.s.detect)
+        return bool(u @ (u / self.variance(q, Y, moving=False)) <= self.s.detect)
 
     def same(self, d, e, q, Y=None) -> bool:
         """Whether two departures d, e (n,) differ by less than the sensor's noise and the pose error say a change
         does (chi^2 <= detect; friction left out: a level that moves with the arm's speed is not the same level)."""
         u = np.asarray(d) - np.asarray(e)
-        return bool(u @ (u / np.diag(self.covariance(q, Y, moving=False, friction=False))) <= self.s.detect)
+        return bool(u @ (u / self.variance(q, Y, moving=False, friction=False)) <= self.s.detect)
 
     def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and

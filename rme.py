@@ -291,14 +291,14 @@ class RME:
         if self._refine is not None and self._still >= s.window:       # owed: the same change, friction gone
             level, self._refine = self._refine, None
             return self._estimate_now(s.window, level, "at rest", refine=False)
+        moving = m.settling() > s.changes.detect
         if m.departure(q, Y) <= s.changes.detect:
-            if m.settling() > s.changes.detect:
+            if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
             self._since, self._wrench, self._refused = None, False, None
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
-        moving = m.settling() > s.changes.detect
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
         self.verdicts.append((k / s.rate, v))
         if self._since is None or moving or not m.same(v.d, self._level, q, Y):

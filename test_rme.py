@@ -12,6 +12,7 @@ from rme import RMESettings
 from cpic import JointHold
 from experiments.episodes import measure as record
 from sim import N, Q_READY, Plant, PlantConfig
+from tests.helpers import THREE_LINK
 
 ROBOT = Robot.panda()
 LO, HI = ROBOT.model.jnt_range[:, 0], ROBOT.model.jnt_range[:, 1]
@@ -150,17 +151,6 @@ def test_body_regressor_equals_plant_torque_difference_under_motion():
     q = Q[0]
     np.testing.assert_allclose(ROBOT.body_regressor(q, np.zeros(N), np.zeros(N))[:, :4],
                                ROBOT.payload_regressor(q), atol=1e-12)
-
-
-THREE_LINK = """
-<mujoco><compiler angle="radian"/><option gravity="0 0 -9.81"/>
-  <worldbody><body name="l1"><joint name="j1" type="hinge" axis="0 1 0"/>
-    <inertial pos="0.2 0 0" mass="2" diaginertia="0.01 0.01 0.01"/>
-    <body name="l2" pos="0.4 0 0"><joint name="j2" type="hinge" axis="0 1 0"/>
-      <inertial pos="0.15 0 0" mass="1" diaginertia="0.01 0.01 0.01"/>
-      <body name="l3" pos="0.3 0 0"><joint name="j3" type="hinge" axis="0 1 0"/>
-        <inertial pos="0.1 0 0" mass="0.5" diaginertia="0.01 0.01 0.01"/>
-        <site name="tip" pos="0.2 0 0"/></body></body></body></worldbody></mujoco>"""
 
 
 def test_from_xml_works_on_a_three_joint_planar_arm(tmp_path):
