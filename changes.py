@@ -76,6 +76,7 @@ class Verdict:
     phi: np.ndarray | None = None
     mass_std: float = np.inf       # the payload hypothesis' posterior std of the new mass [kg]
     cov: np.ndarray | None = None  # for "back": the covariance (4, 4) of the earlier phi
+    under: np.ndarray | None = None   # for "back": the wrench's level (n,) it returned under (None: none)
 
     @property
     def sure(self) -> float:
@@ -227,14 +228,16 @@ class ChangeModel:
         u = np.asarray(d) - np.asarray(e)
         return bool(u @ (u / self.variance(q, Y, moving=False, friction=False)) <= self.s.detect)
 
-    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False) -> Verdict:
+    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and
         bias), a new payload
         (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
         ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free parameter; the best of them),
         and back to one under a wrench.
         Y (n, 4): the payload regressor at q; J (6, n): the flange's world Jacobian; phi (4,): compensated now;
-        expected: the task announced a load change (the payload's prior odds EXPECTED)."""
+        expected: the task announced a load change (the payload's prior odds EXPECTED); held (n,): the level of a
+        wrench judged before this one and still acting, if any: a return may be a step from it (one event: the
+        wrench stays), as well as a step from the reference (the wrench gone with it)."""
         s, n = self.s, self.n
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
@@ -252,16 +255,20 @@ class ChangeModel:
         if new[0] >= 0.1 and np.abs(new[1:]).max() > payloads.max_com * new[0]:
             logs["payload"] = -np.inf                                  # a CoM beyond any hand's reach: no payload
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
-        logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)
+        logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
+        if held is not None:
+            logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - np.asarray(held, dtype=float), V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
-        states = zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
-        backs = [(gaussian_log_pdf(d - Y @ (p - phi), C0 + Y @ c @ Y.T), p, c) for p, c in states
-                 if np.abs(p - phi).max() > 1e-6]
-        back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None, None)
+        states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
+                  if np.abs(p - phi).max() > 1e-6]
+        bases = [None] if held is None else [None, np.asarray(held, dtype=float)]
+        backs = [(gaussian_log_pdf(d - Y @ (p - phi) - (0 if u is None else u), C0 + Y @ c @ Y.T), p, c, u)
+                 for p, c in states for u in bases]
+        back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None, None, None)
         logs["back"] = back[0]
-        Cw = J.T @ W @ J + C0                                          # an earlier payload back under a wrench (a
-        mixed = [(gaussian_log_pdf(d - Y @ (p - phi), Cw + Y @ c @ Y.T), p, c) for _, p, c in backs]   # press let go
-        mixed = max(mixed, key=lambda b: b[0]) if mixed else (-np.inf, None, None)                   # in a push)
+        Cw = J.T @ W @ J + C0                                          # an earlier payload back under a new wrench
+        mixed = [(gaussian_log_pdf(d - Y @ (p - phi), Cw + Y @ c @ Y.T), p, c, None) for p, c in states]   # (a press
+        mixed = max(mixed, key=lambda b: b[0]) if mixed else (-np.inf, None, None, None)           # let go in a push)
         logs["back+wrench"] = mixed[0] + COMPOUND
         logs["payload"] += EXPECTED if expected else 0.0
         top = max(logs.values())
@@ -270,8 +277,10 @@ class ChangeModel:
         post = {h: w[h] / total for h in HYPOTHESES}
         best = max(post, key=post.get)
         earlier = back if best == "back" else mixed
-        return Verdict(d, post, best, earlier[1] if best.startswith("back") else new if best == "payload" else None,
-                       math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if best.startswith("back") else None)
+        returned = best.startswith("back")
+        return Verdict(d, post, best, earlier[1] if returned else new if best == "payload" else None,
+                       math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if returned else None,
+                       earlier[3] if returned else None)
 
     @staticmethod
     def _box(mean, var, p: Payloads) -> float:

@@ -108,6 +108,7 @@ class RME:
         self._since = None                             # the sample the level first departed from the reference
         self._level = None                             #   and settled at this departure d (n,)
         self._wrench = False                           # that departure has been judged a wrench (counted once)
+        self._held = None                              # the settled level (n,) of a wrench still acting, if any
         self._refused = None                           # the departure d (n,) whose estimate was not plausible
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._held_since = 0                           # the sample the compensation took its present value
@@ -279,7 +280,7 @@ class RME:
             self._step(q, Y, J)
         due = self._due
         if due is not None and due.job is None and self._k >= due.at:
-            self._apply(due, Y, J)
+            self._apply(due, q, Y, J)
         comp = -(Y @ self._phi) if tool is None else -(Y @ self._phi) - tool
         self._last = np.minimum(np.maximum(comp, -self._limit), self._limit)
         return self._last
@@ -295,17 +296,20 @@ class RME:
         if m.departure(q, Y) <= s.changes.detect:
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
-            self._since, self._wrench, self._refused = None, False, None
+            self._since, self._wrench, self._refused, self._held = None, False, None, None
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
-        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected)
+        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._held)
         self.verdicts.append((k / s.rate, v))
         if self._since is None or moving or not m.same(v.d, self._level, q, Y):
             self._since, self._level = k, v.d          # the level's age: since it settled where it is now
+        elif v.best == "wrench" and k - self._since >= S and self._still >= S:
+            self._held = v.d                           # a wrench holding the arm still: a return may come under it
         young = k - self._since < s.changes.patience * s.rate      # (a level younger than that may still change)
         if v.sure < (s.changes.confidence if young else 0.5) or (moving and not (v.best == "payload" or (
-                v.best == "back" and m.explains(Y @ (v.phi - self._phi), q, Y)))):
+                v.best == "back" and m.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under),
+                                                q, Y)))):
             return              # undecided; or the level still moves, when only a payload whose mass the data pin
                                 # down (below) or a return the level matches within the noise alone is informed
                                 # by the data rather than by the hypotheses' prior volumes
@@ -386,8 +390,10 @@ class RME:
         s = self.settings
         return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
 
-    def _apply(self, due, Y, J):
-        """Compensate the decided estimate from now on; the residuals held are re-expressed under it."""
+    def _apply(self, due, q, Y, J):
+        """Compensate the decided estimate from now on; the residuals held are re-expressed under it. An estimate of
+        a window at rest is the payload hypothesis' posterior for that level: what it leaves is the bias at this pose
+        under it, the reference from now on (estimating the same level again would return the same)."""
         self._due, s = None, self.settings
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
@@ -403,8 +409,10 @@ class RME:
         if self.detector is not None:
             self.detector.shift(d, self._P @ d)
         due.estimate.applied = self._k / self.settings.rate
-        self._since, self._wrench, self._refused = None, False, None
+        self._since, self._wrench, self._refused, self._held = None, False, None, None
         self._refine = due.level if due.refine else None
+        if due.kind != "back" and not due.refine and self._still >= 2 * s.changes.short:
+            self.model.set_reference(q, self._gradient(q))
 
 
 def _phi_cov(theta, cov):

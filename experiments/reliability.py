@@ -203,7 +203,8 @@ def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
     return dict(changes=changes, pushes=pushes, final_error_mm=float(1e3 * rec.ee_error[-1]),
                 nan=bool(not (np.all(np.isfinite(rec.tau)) and np.all(np.isfinite(rec.theta_hat)))),
                 over_limit=bool(np.any(np.abs(rec.tau) > TAU_MAX + 1e-9)),
-                joint_limit=bool(np.any(rec.q < lo - 1e-3) or np.any(rec.q > hi + 1e-3)))
+                joint_limit=bool(np.any(rec.q < lo - 1e-3) or np.any(rec.q > hi + 1e-3)),
+                estimates=len(getattr(rec, "history", ())))
 
 
 def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: ReliabilityConfig) -> dict:
@@ -243,21 +244,25 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One push [s, e): a sample is the push's compensation if the compensated mass has moved from the one before
     the push by more than the tolerance, is off the true mass by more than the tolerance, and further off it than
     the one before (no load change warrants it). Compensated: such a sample in [s, e + after_push); outlived: the
-    last such sample before the next change or push, less e; rise (presses alone: no other push or change from s
+    last such sample before the next change or push, less the end of the pushes acting at e (its own or a longer
+    one under which it began or ended: until then the compensation may be theirs); rise (presses alone: no other push or change from s
     to the end of the release window, else None): the end effector's height above its target after e."""
     s, force, d = push
     e = s + d
     t, m_hat, right = ctx["t"], ctx["m_hat"], ctx["right"]
     k_s = _index(t, s)
     ref = m_hat[k_s - 1] if k_s > 0 else 0.0
-    nxt = [x for x in [c["t"] for c in ep["changes"]] + [p[0] for p in ep["pushes"]] if x > e]
+    last = e                                 # the end of the pushes still acting when it ends (a compensation
+    for p in sorted(ep["pushes"], key=lambda p: p[0]):   # until then may be theirs: a press under it)
+        last = max(last, p[0] + p[2]) if p[0] <= last else last
+    nxt = [x for x in [c["t"] for c in ep["changes"]] + [p[0] for p in ep["pushes"]] if x > last]
     k_end = _index(t, min(nxt, default=t[-1] + ctx["dt"]))
     m = rec.theta[k_s:k_end, 0]
     h = m_hat[k_s:k_end]
     own = (np.abs(h - ref) > tolerance(ref, cfg)) & ~right[k_s:k_end] & (np.abs(h - m) > np.abs(ref - m))
     hit = np.flatnonzero(own)
     during = bool(np.any(t[k_s + hit] < e + cfg.after_push)) if len(hit) else False
-    outlived = max(0.0, float(t[k_s + hit[-1]] + ctx["dt"] - e)) if len(hit) else 0.0
+    outlived = max(0.0, float(t[k_s + hit[-1]] + ctx["dt"] - last)) if len(hit) else 0.0
     kind, until = _push_class(force, cfg), e + cfg.release_window
     alone = not any(c["t"] >= s and c["t"] < until for c in ep["changes"]) and not any(
         q is not push and q[0] < until and q[0] + q[2] > s for q in ep["pushes"])
@@ -321,6 +326,8 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
         "nan": sum(e["nan"] for e in load_eps + push_eps),
         "torque_over_limit": sum(e["over_limit"] for e in load_eps + push_eps),
         "joint_limit_violations": sum(e["joint_limit"] for e in load_eps + push_eps),
+        "estimates_per_event_max": max((e.get("estimates", 0) / max(1, len(e["changes"]) + len(e["pushes"]))
+                                        for e in load_eps + push_eps), default=0.0),
         "final_error_mm_median": float(np.median(errs)) if errs else None,
         "final_error_over_target": sum(x >= cfg.error_mm for x in errs),
         "load_episodes": len(load_eps), "push_episodes": len(push_eps),
@@ -406,6 +413,8 @@ def print_summary(res: dict, cfg: ReliabilityConfig):
              ("upward pushes compensated", frac(s["pushes"]["up"]), "-"),
              (f"push-only: compensation outliving its push by > {cfg.outlive_s} s",
               f"{s['push_only_outlived']['over_target']}/{s['push_only_outlived']['pushes']} pushes", "0"),
+             ("estimates per change or push, the most in one episode", f"{s['estimates_per_event_max']:.1f}",
+              "a few"),
              ("NaN / torque over the limits / joint limits",
               f"{s['nan']} / {s['torque_over_limit']} / {s['joint_limit_violations']}", "0 / 0 / 0"),
              ("final end-effector error", "-" if s["final_error_mm_median"] is None else

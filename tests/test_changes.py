@@ -163,6 +163,32 @@ def test_a_press_let_go_under_a_sideways_push_is_no_new_payload():
     assert all(b in ("wrench", "back+wrench") for b, _ in res), res
 
 
+def test_a_press_let_go_under_a_push_already_held_is_a_return():
+    """A sideways push has held the arm at the level J^T w (judged a wrench) while a press was compensated as a 2 kg
+    load; the press is let go and the push stays: the step from the held level is the press's reversal alone (one
+    event), so the model returns to no payload under it. With the push unchanged (no release) it stays a wrench, also
+    when an earlier payload differs from the compensated one by less than the noise of the held level's drift."""
+    rng = np.random.default_rng(10)
+    phi = np.array([20 / 9.81, 0, 0, 0])
+    near = np.array([20 / 9.81 - 0.03, 0, 0, 0])          # an earlier estimate 30 g away
+    for release in (True, False):
+        for _ in range(10):
+            J, R, Y = arm(rng)
+            m, bias = fresh(rng)
+            f = np.array([*rng.normal(0, 1, 2), 0.0])
+            push = J.T @ np.r_[f * rng.uniform(8, 40) / np.linalg.norm(f), 0, 0, 0]
+            stream(m, rng, [bias + push] * 120)
+            held = m.mean(m.s.short) - m.reference.level
+            stream(m, rng, [bias + push - (Y @ phi if release else 0)] * 120)
+            p = Payloads.plausible(3.0, 0.3)
+            p.earlier, p.covs = [near, np.zeros(4)], [np.zeros((4, 4))] * 2
+            v = m.judge(Y, J, phi, np.zeros(N), p, held=held)
+            if release:
+                assert v.best == "back" and v.sure > 0.99 and np.allclose(v.phi, 0) and v.under is not None, v
+            else:
+                assert v.best == "wrench", v
+
+
 def test_the_model_runs_without_mujoco():
     """changes.py is the model alone: importing it (in a fresh interpreter) loads no MuJoCo."""
     import subprocess
