@@ -218,8 +218,9 @@ class RME:
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
         speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
         em, s = self.error_model, self.settings
-        bias = [em.referred if r else em.absolute_cov for r in referred] if many else \
-            (em.referred if referred else em.absolute_cov)
+        absolute = lambda qi: em.absolute_cov_at(self.robot.gravity(qi.mean(axis=0)))   # the pose's own G(q)
+        bias = [em.referred if r else absolute(qi) for r, qi in zip(referred, q)] if many else \
+            (em.referred if referred else absolute(q))
         if network:                                    # the network's prior, checked against the broad one
             sp, alternative = self.net.prior_std(prior, s.vi.sigma_prior, R[-1]), self._broad
         elif np.all(referred):                         # no weights: the zero prior mean with the paper's widths

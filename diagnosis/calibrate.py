@@ -42,13 +42,15 @@ def rest_windows(log, config: RestConfig = RestConfig()):
 class RestData:
     """The rest windows of one or more logs, as means: q (W, n), tau (W, n) [Nm], Y (W, n, 4) the mean payload
     regressor; before (W,) the index of the window before in the same rest run (-1: none); the windows' rows for
-    their full samples: log index, start, stop (W, 3)."""
+    their full samples: log index, start, stop (W, 3); gravity (W, n) [Nm] the robot model's G(q) at the mean pose
+    (None: not known)."""
     q: np.ndarray
     tau: np.ndarray
     Y: np.ndarray
     before: np.ndarray
     rows: np.ndarray
     logs: list
+    gravity: np.ndarray | None = None
 
     def pose_labels(self, tol=RestConfig.pose) -> np.ndarray:
         """(W,) the pose of each window: greedy clusters within tol rad on every joint, numbered from 0."""
@@ -66,7 +68,7 @@ class RestData:
 
 def rest_data(logs, robot: Robot, config: RestConfig = RestConfig()) -> RestData:
     """RestData of the loaded logs (diagnosis.logs.Log, tau_ext in the paper's sign)."""
-    q, tau, Y, before, rows = [], [], [], [], []
+    q, tau, Y, before, rows, gravity = [], [], [], [], [], []
     for i, log in enumerate(logs):
         if log.tau_ext is None:
             raise ValueError(f"logs[{i}]: expected tau_ext (or tau_J and a model), found none in {log.info.get('source')}")
@@ -76,10 +78,12 @@ def rest_data(logs, robot: Robot, config: RestConfig = RestConfig()) -> RestData
             q.append(log.q[a:b].mean(axis=0))
             tau.append(log.tau_ext[a:b].mean(axis=0))
             Y.append(robot.payload_regressor(log.q[a:b]).mean(axis=0))
+            gravity.append(robot.gravity(q[-1]))
             rows.append((i, a, b))
     n = robot.n
     return RestData(np.reshape(q, (-1, n)), np.reshape(tau, (-1, n)), np.reshape(Y, (-1, n, 4)),
-                    np.array(before, dtype=int), np.reshape(rows, (-1, 3)).astype(int), list(logs))
+                    np.array(before, dtype=int), np.reshape(rows, (-1, 3)).astype(int), list(logs),
+                    np.reshape(gravity, (-1, n)))
 
 
 def pooled_payload(data: RestData, ridge=RestConfig.ridge) -> np.ndarray:
@@ -113,7 +117,9 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     r_p its mean over the windows of pose p (each pose counts once); offset = mean r_p; absolute = the RMS of r_p
     about it over the P poses, times sqrt(n P / (n P - k)) for the k values fitted (n offsets, 4 more with a load);
     correlation: that of r_p across joints, shrunk to independence by n / (n + P); referred = RMS of r_w - r_before over the pairs of consecutive windows of
-    one rest run (what a window referred to the level just before it still holds: drift, a load's vibration)."""
+    one rest run (what a window referred to the level just before it still holds: drift, a load's vibration);
+    gravity_range: the lowest and highest of each joint's G_j(q) over the poses (data.gravity), beyond which the
+    absolute error is not measured (ErrorModel.absolute_cov_at)."""
     if load not in ("none", "fit"):
         raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
     W, n = data.tau.shape
@@ -147,15 +153,19 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                                                                  # (ours: n / (n + P), half at P = n)
     corr = (1 - lam) * np.nan_to_num(corr) + lam * np.eye(n)
     np.fill_diagonal(corr, 1.0)
+    gp = None if data.gravity is None else np.array([data.gravity[labels == i].mean(axis=0) for i in range(P)])
     model = ErrorModel(tuple(absolute), tuple(np.maximum(referred, floor)), tuple(offset),
                        source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}",
-                       correlation=tuple(map(tuple, corr)))
+                       correlation=tuple(map(tuple, corr)),
+                       gravity_range=None if gp is None else (tuple(gp.min(axis=0)), tuple(gp.max(axis=0))))
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
                   load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
                   referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
-                  shrinkage=lam, notes=notes)
+                  shrinkage=lam, notes=notes,
+                  gravity_range=None if gp is None else [list(model.gravity_range[0]), list(model.gravity_range[1])],
+                  gravity_share=model.gravity_share)
     return model, report
 
 
@@ -170,6 +180,10 @@ def format_report(rep: dict) -> str:
               f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
               f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
               f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
+    if rep.get("gravity_range"):
+        lo, hi = rep["gravity_range"]
+        lines.append(f"  gravity G(q) [Nm]  " + " ".join(f"{a:+.0f}..{b:+.0f}".rjust(6) for a, b in zip(lo, hi))
+                     + f"   (measured within; beyond: {rep['gravity_share']:.0%} of the excess)")
     return "\n".join(lines + [f"  note: {x}" for x in rep["notes"]])
 
 
