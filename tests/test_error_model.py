@@ -280,3 +280,34 @@ def test_a_pose_beyond_the_calibrated_gravity_torques_gets_the_gravity_models_er
             e = RME(rng=np.random.default_rng(0), calibration=m).estimate(*_window(rng, far, theta, k * g))
             hits[kind].append(abs(e.mean[0] - theta[0]) < 2 * e.std[0])
     assert np.mean(hits["range"]) >= 0.85 and np.mean(hits["none"]) < 0.6, {k: np.mean(v) for k, v in hits.items()}
+
+
+class _Built(Exception):
+    """Raised by _recording_rme once the benchmark under test has built its first estimator."""
+
+
+def _recording_rme(seen):
+    def build(*args, calibration=None, **kwargs):
+        seen.append(calibration)
+        raise _Built
+    return build
+
+
+def test_simulated_benchmarks_build_rme_with_the_calibration_given(tmp_path, monkeypatch):
+    """`sim.py bench`, `calibration` and `reliability` hand --calibration to the RME they build, and refuse a file
+    that cannot be read before any simulation (exit status 1, the file named)."""
+    from experiments import bench, calibration, cli, reliability
+    path = str(tmp_path / "robot.json")
+    ErrorModel(tuple(ABS), tuple(REF), tuple(OFFSET), "drawn").save(path)
+    seen = []
+    for module in (bench, calibration):
+        monkeypatch.setattr(module, "RME", _recording_rme(seen))
+    monkeypatch.setattr(reliability, "estimator_class", lambda spec: _recording_rme(seen))
+    for call in (lambda: bench.tables(1, 1, log=lambda *a: None, calibration=path),
+                 lambda: calibration.calibration_benchmark(windows=1, calibration=path),
+                 lambda: reliability.reliability(1, calibration=path, log=lambda *a: None)):
+        with pytest.raises(_Built):
+            call()
+    assert seen == [path] * 3
+    for demo in ("bench", "calibration", "reliability"):
+        assert cli.main([demo, "--calibration", str(tmp_path / "none.json")]) == 1
