@@ -52,6 +52,14 @@ class RestData:
     logs: list
     gravity: np.ndarray | None = None
 
+    def subset(self, keep) -> "RestData":
+        """The windows where keep (W,) bool is True; a window whose window before was dropped gets -1 there."""
+        keep = np.asarray(keep, dtype=bool)
+        new = np.cumsum(keep) - 1                                    # (W,) index among the kept windows
+        before = np.where((self.before >= 0) & keep[np.maximum(self.before, 0)], new[np.maximum(self.before, 0)], -1)
+        return RestData(self.q[keep], self.tau[keep], self.Y[keep], before[keep], self.rows[keep], self.logs,
+                        None if self.gravity is None else self.gravity[keep])
+
     def pose_labels(self, tol=RestConfig.pose) -> np.ndarray:
         """(W,) the pose of each window: greedy clusters within tol rad on every joint, numbered from 0."""
         centres, labels = [], []

@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from diagnosis.calibrate import RestConfig, pooled_payload, rest_data
+from diagnosis.calibrate import RestConfig, calibrate, pooled_payload, rest_data
 from diagnosis.logs import load_log
 from dynamics import theta_of
 from error_model import as_error_model
@@ -33,9 +33,24 @@ def _summary(M, S, truth, names=NAMES):
     return out
 
 
-def real_logs(paths, calibration=None, config: RestConfig = RestConfig()) -> dict:
+def leave_pose_out(data, samples, seed=0):
+    """RME on each pose's windows (absolute) calibrated (load fitted) on the windows of the other poses only: what a
+    calibration says of a pose it has not seen. Returns (mean (W, 4), std (W, 4)) in the windows' order."""
+    labels = data.pose_labels()
+    M, S = np.full((len(labels), 4), np.nan), np.full((len(labels), 4), np.nan)
+    for p in range(labels.max() + 1):
+        model, _ = calibrate(data.subset(labels != p), "fit")
+        est = RME(rng=np.random.default_rng(seed), calibration=model)
+        for w in np.flatnonzero(labels == p):
+            e = est.estimate(*samples(w))
+            M[w], S[w] = e.mean, e.std
+    return M, S
+
+
+def real_logs(paths, calibration=None, config: RestConfig = RestConfig(), leave_out: bool = False) -> dict:
     """The benchmark as a dict: absolute windows (each as it is) against the pooled least-squares theta, and
-    referred windows (each less the mean of the window before it in the same rest run: no change, truth m = 0)."""
+    referred windows (each less the mean of the window before it in the same rest run: no change, truth m = 0).
+    leave_out: also RME calibrated, for each pose, on the other poses' windows (leave_pose_out; 3 poses at least)."""
     if not paths:
         raise ValueError("logs: expected at least one log file, found none")
     est = RME(rng=np.random.default_rng(0))
@@ -57,6 +72,11 @@ def real_logs(paths, calibration=None, config: RestConfig = RestConfig()) -> dic
         if ref:
             res["referred"][name] = _summary(np.array([e.mean for e in ref])[:, :1], np.array([e.std for e in ref])[:, :1],
                                              [0.0], names=("m",))
+    if leave_out:
+        if res["poses"] < 3:
+            raise ValueError(f"--leave-pose-out: expected rest at 3 poses at least (a calibration with the load "
+                             f"fitted needs 2), found {res['poses']}")
+        res["absolute"]["RME, calibrated on the other poses"] = _summary(*leave_pose_out(data, samples), pooled)
     return res
 
 
@@ -83,6 +103,6 @@ def main(args):
         raise ValueError(f"DIR: expected a folder of logs, found no folder at {args.dir!r}")
     as_error_model(args.calibration)                     # a calibration that cannot be read: before the logs
     paths = sorted(glob.glob(os.path.join(args.dir, "*.csv")) + glob.glob(os.path.join(args.dir, "*.npz")))
-    res = real_logs(paths, calibration=args.calibration)
+    res = real_logs(paths, calibration=args.calibration, leave_out=args.leave_pose_out)
     print(json.dumps(res)) if args.json else print_real_logs(res)
     return res

@@ -242,8 +242,8 @@ def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
         tau = ROBOT.payload_regressor(q) @ phi_of(theta) + rng.normal(0, 0.02, (900, 7))
         write_npz(tmp_path / f"log{k}.npz", dict(t=np.arange(900) * 1e-3, q=q, dq=np.zeros_like(q),
                                                  tau_J=np.zeros_like(q), tau_ext=tau))
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "sim.py"), "real-logs", str(tmp_path), "--json"],
-                         capture_output=True, text=True, timeout=300)
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "sim.py"), "real-logs", str(tmp_path), "--json",
+                          "--leave-pose-out"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert res["logs"] == 2 and res["windows"] >= 8
@@ -253,6 +253,20 @@ def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
         assert (row["sigma"] is None) == (name == "least squares") and row["spread"] is not None
         assert abs(row["median"] - 0.8) < (0.02 if row["sigma"] is None else 2 * row["sigma"]), (name, row)
     assert abs(res["referred"]["RME"]["m"]["median"]) < 0.05          # no change between consecutive windows
+    row = res["absolute"]["RME, calibrated on the other poses"]["m"]   # each pose judged by the other three
+    assert abs(row["median"] - 0.8) < 0.04 and row["sigma"] > 0 and row["coverage"] is not None, row
+
+
+def test_a_subset_of_rest_windows_keeps_only_the_pairs_it_holds_both_of():
+    """RestData.subset: windows 0-1-2 and 3-4 are runs of rest (before = -1, 0, 1, -1, 3); dropping window 1 leaves
+    window 2 without its window before, and renumbers window 4's to the kept window 3's new index."""
+    W = 5
+    data = RestData(np.arange(W * 7.0).reshape(W, 7), np.zeros((W, 7)), np.zeros((W, 7, 4)),
+                    np.array([-1, 0, 1, -1, 3]), np.zeros((W, 3), int), [None], np.ones((W, 7)))
+    sub = data.subset([True, False, True, True, True])
+    assert sub.before.tolist() == [-1, -1, -1, 2]
+    np.testing.assert_array_equal(sub.q, data.q[[0, 2, 3, 4]])
+    assert sub.gravity.shape == (4, 7)
 
 
 def test_a_pose_beyond_the_calibrated_gravity_torques_gets_the_gravity_models_error():
