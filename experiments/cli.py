@@ -43,7 +43,7 @@ DEMOS = {
     "calibration": ("coverage and sharpness of RME's 2-sigma intervals on the realistic preset, rest-window spread",
                     "experiments.calibration:main", ("seed", "calibration", "json", "windows")),
     "real-logs": ("real robot logs of one unchanged load: RME beside least squares and the range rule, per rest window",
-                  "experiments.real_logs:main", ("dir", "calibration", "leave_pose_out", "json")),
+                  "experiments.real_logs:main", ("dir", "calibration", "leave_pose_out", "mass", "json")),
     "diagnose-bench": ("the diagnosis tool on a 20,000-sample, 7-joint log: wall time",
                        "experiments.cli:_diagnose_bench", ("json",)),
     "explore": ("Table 5's payloads: a small tilt makes the CoM along gravity observable, before and after",
@@ -80,6 +80,8 @@ FLAGS = {
                                              help="RME's error model (python rme.py calibrate LOG --save FILE)")),
     "leave_pose_out": (("--leave-pose-out",), dict(action="store_true",
                                                    help="also RME calibrated, per pose, on the other poses' windows")),
+    "mass": (("--mass",), dict(type=checks.argument("(0, 50]"), default=None, metavar="KG",
+                               help="the load's mass known otherwise: how often each interval holds it")),
     "tools": (("--tools",), dict(type=checks.argument("1..1000"), default=5, help="random tools, 1..1000")),
 }
 

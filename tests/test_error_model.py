@@ -233,7 +233,8 @@ def test_a_constant_shared_by_the_joints_is_marginalised_exactly():
 @pytest.mark.slow
 def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
     """Two logs of one 0.8 kg load resting at 2 poses each: the pooled least-squares payload is the truth to 2 %, and
-    every method reports its median, spread, and (but least squares) sigma and coverage."""
+    every method reports its median, spread, and (but least squares) sigma and coverage, of the pooled value and of
+    the mass given; RME calibrated on the other poses is there too."""
     rng = np.random.default_rng(12)
     theta = np.array([0.8, 0.03, -0.02, 0.1])
     for k in range(2):
@@ -243,7 +244,7 @@ def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
         write_npz(tmp_path / f"log{k}.npz", dict(t=np.arange(900) * 1e-3, q=q, dq=np.zeros_like(q),
                                                  tau_J=np.zeros_like(q), tau_ext=tau))
     out = subprocess.run([sys.executable, os.path.join(ROOT, "sim.py"), "real-logs", str(tmp_path), "--json",
-                          "--leave-pose-out"], capture_output=True, text=True, timeout=300)
+                          "--leave-pose-out", "--mass", "0.8"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert res["logs"] == 2 and res["windows"] >= 8
@@ -252,6 +253,7 @@ def test_real_logs_command_puts_rme_beside_the_baselines(tmp_path):
         row = res["absolute"][name]["m"]
         assert (row["sigma"] is None) == (name == "least squares") and row["spread"] is not None
         assert abs(row["median"] - 0.8) < (0.02 if row["sigma"] is None else 2 * row["sigma"]), (name, row)
+        assert (row["coverage_mass"] is None) == (name == "least squares")     # the true mass, given
     assert abs(res["referred"]["RME"]["m"]["median"]) < 0.05          # no change between consecutive windows
     row = res["absolute"]["RME, calibrated on the other poses"]["m"]   # each pose judged by the other three
     assert abs(row["median"] - 0.8) < 0.04 and row["sigma"] > 0 and row["coverage"] is not None, row
