@@ -118,6 +118,15 @@ def payload_and_offset(data: RestData, config: RestConfig = RestConfig()) -> tup
     return x[:4], True, std
 
 
+def gravity_range(data: RestData, labels) -> tuple | None:
+    """((n,), (n,)) the lowest and highest of each joint's gravity torque G_j(q) over the poses (each pose's mean
+    over its windows; labels (W,) from pose_labels), None when data.gravity is not known."""
+    if data.gravity is None:
+        return None
+    gp = np.array([data.gravity[labels == i].mean(axis=0) for i in range(labels.max() + 1)])   # (P, n)
+    return tuple(gp.min(axis=0)), tuple(gp.max(axis=0))
+
+
 def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     """The error model of the robot in `data` (RestData) and a report. load "none": nothing was attached (phi = 0);
     "fit": one unchanged load, fitted with the model (pooled_payload): the part of the robot's error that looks
@@ -161,18 +170,17 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                                                                  # (ours: n / (n + P), half at P = n)
     corr = (1 - lam) * np.nan_to_num(corr) + lam * np.eye(n)
     np.fill_diagonal(corr, 1.0)
-    gp = None if data.gravity is None else np.array([data.gravity[labels == i].mean(axis=0) for i in range(P)])
     model = ErrorModel(tuple(absolute), tuple(np.maximum(referred, floor)), tuple(offset),
                        source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}",
                        correlation=tuple(map(tuple, corr)),
-                       gravity_range=None if gp is None else (tuple(gp.min(axis=0)), tuple(gp.max(axis=0))))
+                       gravity_range=gravity_range(data, labels))
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
                   load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
                   referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
                   shrinkage=lam, notes=notes,
-                  gravity_range=None if gp is None else [list(model.gravity_range[0]), list(model.gravity_range[1])],
+                  gravity_range=None if model.gravity_range is None else [list(x) for x in model.gravity_range],
                   gravity_share=model.gravity_share)
     return model, report
 
