@@ -342,7 +342,8 @@ def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realist
         as_error_model(calibration)                          # a calibration that cannot be read: here too
     for kind in KINDS:
         episode_seed(split, plant, kind, 0)
-    tasks = [(split, plant, kind, i, cfg, estimator, calibration) for kind in KINDS for i in range(first, first + episodes)]
+    tasks = [(split, plant, kind, i, cfg, estimator, calibration) for kind in KINDS
+             for i in range(first, first + episodes)]
     t0 = time.perf_counter()
     if jobs == 1:
         results = []
@@ -365,7 +366,7 @@ def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realist
 def main(args):
     res = reliability(args.episodes, args.split, args.plant, args.estimator, args.jobs,
                       log=(lambda *a: None) if args.json else print, first=args.first, calibration=args.calibration)
-    if args.plant == "realistic" and args.estimator == "rme:RME" and args.calibration is None:
+    if args.plant == "realistic" and args.estimator == "rme:RME" and args.calibration is None:   # its RME: uncalibrated
         res["limit_cycle"] = limit_cycle_trials(range(20))
     if args.json:
         print(json.dumps(res, default=_jsonable))
