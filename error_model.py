@@ -39,6 +39,8 @@ class ErrorModel:
     correlation: tuple | None = None   # (n, n) of the absolute error across joints (None: independent joints)
     gravity_range: tuple | None = None  # (2, n) lowest, highest gravity torque G_j(q) [Nm] over the calibration poses
     gravity_share: float = GRAVITY_SHARE   # std of the model's error per Nm of G_j beyond that range
+    drift: tuple | None = None   # (n,) [Nm] what a window referred to a baseline window keeps besides the two
+                                 #   windows' own slow parts (vi.level_variance); None: referred
 
     def __post_init__(self):
         n = None
@@ -68,6 +70,11 @@ class ErrorModel:
                 raise ValueError(f"error_model.gravity_range: expected (2, {n}) finite lowest and highest gravity "
                                  f"torques (lowest <= highest) [Nm], found {self.gravity_range!r:.80}")
             object.__setattr__(self, "gravity_range", tuple(tuple(float(x) for x in row) for row in G))
+        if self.drift is not None:
+            a = checks.real_array(self.drift)
+            if a is None or a.shape != (n,) or not np.all(np.isfinite(a)) or not np.all((a > 0) & (a <= 20.0)):
+                raise ValueError(f"error_model.drift: expected {n} stds in (0, 20] Nm, found {self.drift!r:.80}")
+            object.__setattr__(self, "drift", tuple(float(x) for x in a))
         object.__setattr__(self, "gravity_share", checks.number("error_model.gravity_share", self.gravity_share,
                                                                 "[0, 1]", "(Nm per Nm of gravity torque)"))
         if not isinstance(self.source, str):
@@ -114,7 +121,8 @@ class ErrorModel:
         if missing:
             raise ValueError(f"error_model: {path!r} lacks {sorted(missing)}")
         return cls(data["absolute"], data["referred"], data["offset"], str(data.get("source", path)),
-                   data.get("correlation"), data.get("gravity_range"), data.get("gravity_share", GRAVITY_SHARE))
+                   data.get("correlation"), data.get("gravity_range"), data.get("gravity_share", GRAVITY_SHARE),
+                   data.get("drift"))
 
 
 def as_error_model(x, n: int = N) -> ErrorModel:

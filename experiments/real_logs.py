@@ -66,7 +66,8 @@ def real_logs(paths, calibration=None, config: RestConfig = RestConfig(), leave_
         raise ValueError(f"logs: expected at least 2 rest windows of {config.length} samples, found {len(data.tau)}")
     pooled = theta_of(pooled_payload(data))
     res = dict(logs=len(paths), windows=int(len(data.tau)), poses=data.poses(), pooled=pooled.tolist(),
-               calibration=None if calibration is None else str(calibration), absolute={}, referred={}, mass=mass)
+               calibration=None if calibration is None else str(calibration), absolute={}, referred={},
+               mass=mass, **{"referred, the window before given": {}})
     samples = lambda w: (logs[data.rows[w, 0]].q[data.rows[w, 1]:data.rows[w, 2]],
                          logs[data.rows[w, 0]].tau_ext[data.rows[w, 1]:data.rows[w, 2]])
     pairs = np.flatnonzero(data.before >= 0)
@@ -79,6 +80,9 @@ def real_logs(paths, calibration=None, config: RestConfig = RestConfig(), leave_
         if ref:
             res["referred"][name] = _summary(np.array([e.mean for e in ref])[:, :1], np.array([e.std for e in ref])[:, :1],
                                              [0.0], names=("m",))
+            ref = [est.estimate(*samples(w), baseline=samples(data.before[w])[1]) for w in pairs]   # its window
+            res["referred, the window before given"][name] = _summary(
+                np.array([e.mean for e in ref])[:, :1], np.array([e.std for e in ref])[:, :1], [0.0], names=("m",))
     if leave_out:
         if res["poses"] < 3:
             raise ValueError(f"--leave-pose-out: expected rest at 3 poses at least (a calibration with the load "
@@ -97,7 +101,8 @@ def print_real_logs(res):
           "whose 2-sigma interval holds the pooled value (rz is not seen at a level pose).")
     cell = lambda x, f: "-" if x is None else f.format(x)
     for part, rows in (("absolute", res["absolute"]), ("referred to the window before (no change, m = 0)",
-                                                        res["referred"])):
+                                                        res["referred"]),
+                       ("referred, the window before given as samples", res["referred, the window before given"])):
         print(f"  {part}")
         for name, row in rows.items():
             txt = "  ".join(f"{k} {cell(v['median'], '{:+.3f}')} +-{cell(v['spread'], '{:.3f}')} "
