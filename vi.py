@@ -3,6 +3,7 @@
 phi = (m, m rx, m ry, m rz); Adam with global-norm clipping, stopped when mu and sigma settle."""
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -197,21 +198,23 @@ def swing_share(x, dt, freqs):
     (T,), C the centring and P the projector on the window's P1, P2 (_slow_and_white):
       E[mean_t x^2] / E[rms(slow)^2] = ((1^T c)^2 + (1^T s)^2) / T^2 / ((|P C c|^2 + |P C s|^2) / T).
     Returns (share, f)."""
-    T = x.shape[0]
-    t = np.arange(T) * dt
-    u = np.linspace(-1.0, 1.0, T)
+    Q, shares = _swing_bases(x.shape[0], float(dt), tuple(float(f) for f in freqs))
+    k = int(np.argmax(np.sum(np.einsum("ftk,tj->fkj", Q, x) ** 2, axis=(1, 2))))   # the most held: the least left
+    return float(shares[k]), float(freqs[k])
+
+
+@functools.lru_cache(maxsize=8)
+def _swing_bases(T, dt, freqs):
+    """Q (F, T, 3) orthonormal bases of (1, cos wt, sin wt) and each frequency's share (swing_share), (F,)."""
+    t, u = np.arange(T) * dt, np.linspace(-1.0, 1.0, T)
     B = np.stack([u, 1.5 * u * u - 0.5], axis=1)                   # (T, 2) as in _slow_and_white
-    best, f_best, share = np.inf, freqs[0], 1.0
-    for f in freqs:
+    Q, shares = np.empty((len(freqs), T, 3)), np.empty(len(freqs))
+    for i, f in enumerate(freqs):
         cs = np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t)], axis=1)      # (T, 2)
-        F = np.column_stack([np.ones(T), cs])
-        left = np.sum((x - F @ np.linalg.lstsq(F, x, rcond=None)[0]) ** 2)
-        if left < best:
-            csc = cs - cs.mean(axis=0)
-            slow = B @ np.linalg.lstsq(B, csc, rcond=None)[0]       # (T, 2) P C c, P C s
-            best, f_best = left, f
-            share = (np.sum(cs.sum(axis=0) ** 2) / T**2) / max(np.sum(slow**2) / T, 1e-300)
-    return share, f_best
+        Q[i] = np.linalg.qr(np.column_stack([np.ones(T), cs]))[0]
+        slow = B @ np.linalg.lstsq(B, cs - cs.mean(axis=0), rcond=None)[0]                 # (T, 2) P C c, P C s
+        shares[i] = (np.sum(cs.sum(axis=0) ** 2) / T**2) / max(np.sum(slow**2) / T, 1e-300)
+    return Q, shares
 
 
 def level_variance(tau, settings=VISettings(), dt=1e-3):

@@ -214,6 +214,8 @@ def format_report(rep: dict) -> str:
               f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
               f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
               f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
+    if rep.get("drift"):
+        lines.append(f"  drift std [Nm]     {f(rep['drift'])}   (the same beside the two windows' own swings)")
     if rep.get("gravity_range"):
         lo, hi = rep["gravity_range"]
         lines.append(f"  gravity G(q) [Nm]  " + " ".join(f"{a:+.0f}..{b:+.0f}".rjust(6) for a, b in zip(lo, hi))
