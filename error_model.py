@@ -20,6 +20,9 @@ PANDA_ABSOLUTE = (0.5, 0.5, 0.5, 0.5, 0.2, 0.2, 0.2)
 # A window referred to the level just before a change at the same pose: the robot's model error cancels; what is
 # left is the sensor's drift between the two, 5 mNm on the realistic simulated plant (`python sim.py calibration`).
 SIM_REFERRED = 0.005
+# The robot model's gravity torque is off by a share of itself: link masses +-5-10 % on a real Panda (panda_facts.md,
+# "a realistic gap"); we take the low end, 5 % of the gravity torque the calibration poses did not reach.
+GRAVITY_SHARE = 0.05
 
 
 @dataclass(frozen=True)
@@ -34,6 +37,10 @@ class ErrorModel:
     offset: tuple = (0.0,) * N
     source: str = "uncalibrated Panda (panda_facts.md)"
     correlation: tuple | None = None   # (n, n) of the absolute error across joints (None: independent joints)
+    gravity_range: tuple | None = None  # (2, n) lowest, highest gravity torque G_j(q) [Nm] over the calibration poses
+    gravity_share: float = GRAVITY_SHARE   # std of the model's error per Nm of G_j beyond that range
+    drift: tuple | None = None   # (n,) [Nm] what a window referred to a baseline window keeps besides the two
+                                 #   windows' own slow parts (vi.level_variance); None: referred
 
     def __post_init__(self):
         n = None
@@ -57,6 +64,19 @@ class ErrorModel:
                 raise ValueError(f"error_model.correlation: expected a ({n}, {n}) positive definite correlation "
                                  f"matrix (symmetric, unit diagonal), found {self.correlation!r:.80}")
             object.__setattr__(self, "correlation", tuple(tuple(float(x) for x in row) for row in R))
+        if self.gravity_range is not None:
+            G = checks.real_array(self.gravity_range)
+            if G is None or G.shape != (2, n) or not np.all(np.isfinite(G)) or np.any(G[0] > G[1]):
+                raise ValueError(f"error_model.gravity_range: expected (2, {n}) finite lowest and highest gravity "
+                                 f"torques (lowest <= highest) [Nm], found {self.gravity_range!r:.80}")
+            object.__setattr__(self, "gravity_range", tuple(tuple(float(x) for x in row) for row in G))
+        if self.drift is not None:
+            a = checks.real_array(self.drift)
+            if a is None or a.shape != (n,) or not np.all(np.isfinite(a)) or not np.all((a > 0) & (a <= 20.0)):
+                raise ValueError(f"error_model.drift: expected {n} stds in (0, 20] Nm, found {self.drift!r:.80}")
+            object.__setattr__(self, "drift", tuple(float(x) for x in a))
+        object.__setattr__(self, "gravity_share", checks.number("error_model.gravity_share", self.gravity_share,
+                                                                "[0, 1]", "(Nm per Nm of gravity torque)"))
         if not isinstance(self.source, str):
             raise ValueError(f"error_model.source: expected a string, found {self.source!r}")
 
@@ -66,6 +86,19 @@ class ErrorModel:
         joints, or the (n, n) covariance diag(absolute) correlation diag(absolute)."""
         a = np.asarray(self.absolute)
         return a if self.correlation is None else a[:, None] * np.asarray(self.correlation) * a[None, :]
+
+    def absolute_cov_at(self, gravity=None):
+        """absolute_cov at a pose whose gravity torque is G (n,) [Nm]: beyond the calibration poses' range of G_j
+        the model's error is not measured; it grows there by gravity_share per Nm of G_j outside the range, an
+        independent part per joint: C + diag((gravity_share d)^2), d_j = max(lo_j - G_j, G_j - hi_j, 0).
+        Stds (n,) stay stds (n,); None or no range: absolute_cov."""
+        C = self.absolute_cov
+        if gravity is None or self.gravity_range is None:
+            return C
+        lo, hi = np.asarray(self.gravity_range)
+        g = np.asarray(gravity, dtype=float)
+        extra = (self.gravity_share * np.maximum(np.maximum(lo - g, g - hi), 0.0)) ** 2      # (n,)
+        return np.sqrt(C**2 + extra) if C.ndim == 1 else C + np.diag(extra)
 
     def save(self, path) -> None:
         """Write the model as JSON (rme.py calibrate --save)."""
@@ -88,7 +121,8 @@ class ErrorModel:
         if missing:
             raise ValueError(f"error_model: {path!r} lacks {sorted(missing)}")
         return cls(data["absolute"], data["referred"], data["offset"], str(data.get("source", path)),
-                   data.get("correlation"))
+                   data.get("correlation"), data.get("gravity_range"), data.get("gravity_share", GRAVITY_SHARE),
+                   data.get("drift"))
 
 
 def as_error_model(x, n: int = N) -> ErrorModel:

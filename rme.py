@@ -151,6 +151,8 @@ class RME:
         baseline (n,): the tau_ext seen before the change at the same pose, subtracted first. Pass it when you have
         it: the robot model's own error at the pose cancels (ErrorModel.referred, a few mNm); without it the window
         is absolute and carries that error (ErrorModel.absolute, tenths of a Nm; its calibrated offset subtracted).
+        A baseline window (T_b, n) is subtracted as its mean, and what its own swing leaves in that mean is counted
+        (vi.level_variance, with ErrorModel.drift for the rest when calibrated).
         dq (T, n): joint velocities, needed only by a velocity-dependent correction (e.g. fitted friction).
         referred: None: the window is referred exactly when a baseline is given; True: tau_ext is already less the
         level before the change (you subtracted it); False: absolute even with a baseline."""
@@ -161,16 +163,19 @@ class RME:
                              "change is referred), found False")
         ref = lambda b: bool(b is not None if referred is None else referred)
         if not isinstance(q, (list, tuple)):
-            return self._estimate(*self._window(q, tau_ext, baseline, dq, ref(baseline)), referred=ref(baseline))[0]
+            q, tau, level = self._window(q, tau_ext, baseline, dq, ref(baseline))
+            return self._estimate(q, tau, referred=ref(baseline), level=level)[0]
         each = lambda v: [None] * len(q) if v is None else list(v) if isinstance(v, (list, tuple)) else []
         if not (q and len(each(tau_ext)) == len(q) == len(each(baseline)) == len(each(dq))):
             raise ValueError(f"q, tau_ext, baseline, dq: expected lists of {len(q)} windows (or None), found other")
         windows = [self._window(*w, ref(w[2])) for w in zip(q, each(tau_ext), each(baseline), each(dq))]
         return self._estimate([w[0] for w in windows], [w[1] for w in windows],
-                              referred=[ref(b) for b in each(baseline)])[0]
+                              referred=[ref(b) for b in each(baseline)], level=[w[2] for w in windows])[0]
 
     def _window(self, q, tau_ext, baseline, dq, referred):
-        """A checked (q, tau) (T, n) window, less the baseline and the correction."""
+        """A checked (q, tau) (T, n) window, less the baseline (its mean, for a window) and the correction; and
+        level (n,) [Nm^2] what a baseline window's mean holds of its own slow part and noise (vi.level_variance;
+        None for a baseline given as its mean, or none)."""
         n, q_in, tau_in = self.robot.n, q, tau_ext
         q, qb = as_states("q", q, n)
         tau, tb = self._torques("tau_ext", tau_ext)
@@ -179,8 +184,11 @@ class RME:
                              f"{np.shape(q_in)} and {np.shape(tau_in)}")
         if q.shape[0] < 20:
             raise ValueError(f"q: expected a window of at least 20 samples (the network reads 20), found {q.shape[0]}")
+        level = None
         if baseline is not None:
-            tau = tau - self._torques("baseline", baseline, allow_window=False)[0]
+            base, window = self._torques("baseline", baseline)
+            tau = tau - base.mean(axis=0)
+            level = vi.level_variance(base, self.settings.vi) if window else None
         if not referred:                                             # an absolute window: the calibrated mean
             tau = tau - np.asarray(self.error_model.offset)          #   model error, and the known tool's weight
             if self.tool is not None:
@@ -190,7 +198,7 @@ class RME:
             if dq.shape != q.shape:
                 raise ValueError(f"dq: expected shape {q.shape} like q, found {dq.shape}")
             tau = tau - self.correction.correction(q, dq)
-        return q, tau
+        return q, tau, level
 
     def _torques(self, name, x, allow_window=True):
         """as_states, every torque within settings.max_abs_torque (beyond it a sensor fault, not a load)."""
@@ -201,10 +209,12 @@ class RME:
                              f"{self.settings.max_abs_torque:g} Nm, found {tau[i]:g} at index {i if batched else i[1]}")
         return tau, batched
 
-    def _estimate(self, q, tau, referred=True):
+    def _estimate(self, q, tau, referred=True, level=None):
         """Network prior and VI on checked, corrected windows (or lists): (Estimate, S) with S (n + 5, 4) what
         judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows).
-        referred: the window is less the level before the change (else absolute; a list with lists of windows).
+        referred: the window is less the level before the change (else absolute; a list with lists of windows);
+        level (n,) [Nm^2]: what that level's own window leaves in its mean (_window; a list; None: a level given as a
+        mean), with which a calibrated ErrorModel.drift replaces ErrorModel.referred.
         The network was trained on referred windows (nn_train: tau_ext less its mean before the attachment): its
         prior stands for those, checked against the window's evidence (vi.prior_conflict); an absolute window, which
         holds the robot's own model error too, gets the broad prior over every plausible payload."""
@@ -219,8 +229,11 @@ class RME:
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
         speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
         em, s = self.error_model, self.settings
-        bias = [em.referred if r else em.absolute_cov for r in referred] if many else \
-            (em.referred if referred else em.absolute_cov)
+        absolute = lambda qi: em.absolute_cov_at(self.robot.gravity(qi.mean(axis=0)))   # the pose's own G(q)
+        relative = lambda lv: em.referred if lv is None or em.drift is None else np.sqrt(np.square(em.drift) + lv)
+        levels = (level if level is not None else [None] * len(q)) if many else level
+        bias = [relative(lv) if r else absolute(qi) for r, qi, lv in zip(referred, q, levels)] if many else \
+            (relative(levels) if referred else absolute(q))
         if network:                                    # the network's prior, checked against the broad one
             sp, alternative = self.net.prior_std(prior, s.vi.sigma_prior, R[-1]), self._broad
         elif np.all(referred):                         # no weights: the zero prior mean with the paper's widths

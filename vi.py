@@ -3,6 +3,7 @@
 phi = (m, m rx, m ry, m rz); Adam with global-norm clipping, stopped when mu and sigma settle."""
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -43,6 +44,9 @@ class VISettings:
     motion_gain: float = 0.3           # Nm s/rad, ours: constant error per unit of |dq| (friction, off-pose model
     motion_max: float = 1.3            #   error; 0.3 beats 1.0 on Table 1, calibration, limit cycle); Nm, at most
     reference_samples: int = 30        # samples of the reference the window is referred to (RMESettings.reference)
+    swing_frequencies: tuple = tuple(np.arange(1.0, 10.01, 0.1))   # Hz, where swing_share looks for a swing: a
+                                       #   flexible load a hand carries, 1-10 Hz (the steel beam of docs/real_logs.md:
+                                       #   1.8-4.3 Hz); below 1 Hz a 0.2 s window holds a drift, not a swing
     observed_ratio: float = 0.5        # ours: a parameter counts as observed if its posterior std < this x prior std
     keep_history: bool = False         # record mu, sigma and the -ELBO estimate at every iteration
     conflict: float = 5.0              # ln Bayes factor of a broad prior over the network's beyond which the window
@@ -63,6 +67,7 @@ class VISettings:
             c.number(name, getattr(self, name), interval, "Nm" if name in ("noise_floor", "offset_std") else "")
         c.number("min_iterations", self.min_iterations, f"0..{self.max_iterations}", "(max_iterations)")
         c.array("betas", self.betas, (2,), "[0, 1)")
+        c.array("swing_frequencies", self.swing_frequencies, (None,), "(0, 500]", "Hz")
         for name in ("antithetic", "control_variate", "warm_start", "keep_history"):
             c.flag(name, getattr(self, name))
         if self.antithetic and self.samples % 2:
@@ -163,6 +168,19 @@ def noise_from_window(Y, tau, settings=VISettings(), speed=None, bias_std=None):
     G = Z.T @ Z
     ridge = 1e-9 * (np.trace(G) + np.sum(Y * Y)) + 1e-300   # keeps phi finite when Yc is ~0 (static)
     res = tc - Yc @ np.linalg.solve(G + ridge * np.eye(4), Z.T @ tc.reshape(-1))   # (T, n)
+    slow, coef, s = _slow_and_white(res, settings)
+    d2 = (offset**2 + (settings.load_share * tau.mean(axis=0))**2
+          + settings.slow_gain**2 * np.mean(slow * slow, axis=0) + s**2 / settings.reference_samples
+          + np.minimum(settings.motion_gain * np.linalg.norm(0.0 if speed is None else speed), settings.motion_max)**2)
+    v = np.sqrt(settings.offset_std**2 + settings.slow_gain**2 * np.mean(coef * coef, axis=0))
+    return s, np.stack([np.sqrt(d2), v, v], axis=1)
+
+
+def _slow_and_white(res, settings):
+    """res (T, n) -> slow (T, n) its line and parabola in t per joint (Legendre P1, P2: drift, settling, a swing),
+    coef (2, n) their coefficients, s (n,) the std of the rest e, inflated for its lag-1 autocorrelation rho_j
+    (the variance of the mean of AR(1) noise): max(noise_scale rms(e_j) sqrt((1 + rho_j) / (1 - rho_j)), noise_floor)."""
+    T = res.shape[0]
     t = np.linspace(-1.0, 1.0, T)
     B = np.stack([t, 1.5 * t * t - 0.5], axis=1)             # (T, 2) Legendre P1, P2: slow drift
     coef = np.linalg.lstsq(B, res, rcond=None)[0]            # (2, n)
@@ -170,11 +188,46 @@ def noise_from_window(Y, tau, settings=VISettings(), speed=None, bias_std=None):
     rho = np.clip(np.sum(e[1:] * e[:-1], axis=0) / np.maximum(np.sum(e * e, axis=0), 1e-300), 0.0, 0.9)
     s = np.maximum(settings.noise_scale * np.sqrt(np.sum(e * e, axis=0) / (T - 3) * (1 + rho) / (1 - rho)),
                    settings.noise_floor)
-    d2 = (offset**2 + (settings.load_share * tau.mean(axis=0))**2
-          + settings.slow_gain**2 * np.mean(slow * slow, axis=0) + s**2 / settings.reference_samples
-          + np.minimum(settings.motion_gain * np.linalg.norm(0.0 if speed is None else speed), settings.motion_max)**2)
-    v = np.sqrt(settings.offset_std**2 + settings.slow_gain**2 * np.mean(coef * coef, axis=0))
-    return s, np.stack([np.sqrt(d2), v, v], axis=1)
+    return slow, coef, s
+
+
+def swing_share(x, dt, freqs):
+    """A swing's share of its slow part in a window's mean: x (T, n) a window less its mean, sampled every dt s.
+    Its swing x_j(t) = a_j cos(w t + psi) + e shares one frequency f = w / 2 pi over the joints: the f of `freqs` [Hz]
+    whose per-joint fit (1, cos wt, sin wt) leaves the least. For a uniform phase psi, with c, s = cos wt, sin wt
+    (T,), C the centring and P the projector on the window's P1, P2 (_slow_and_white):
+      E[mean_t x^2] / E[rms(slow)^2] = ((1^T c)^2 + (1^T s)^2) / T^2 / ((|P C c|^2 + |P C s|^2) / T).
+    Returns (share, f)."""
+    Q, shares = _swing_bases(x.shape[0], float(dt), tuple(float(f) for f in freqs))
+    k = int(np.argmax(np.sum(np.einsum("ftk,tj->fkj", Q, x) ** 2, axis=(1, 2))))   # the most held: the least left
+    return float(shares[k]), float(freqs[k])
+
+
+@functools.lru_cache(maxsize=8)
+def _swing_bases(T, dt, freqs):
+    """Q (F, T, 3) orthonormal bases of (1, cos wt, sin wt) and each frequency's share (swing_share), (F,)."""
+    t, u = np.arange(T) * dt, np.linspace(-1.0, 1.0, T)
+    B = np.stack([u, 1.5 * u * u - 0.5], axis=1)                   # (T, 2) as in _slow_and_white
+    Q, shares = np.empty((len(freqs), T, 3)), np.empty(len(freqs))
+    for i, f in enumerate(freqs):
+        cs = np.stack([np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t)], axis=1)      # (T, 2)
+        Q[i] = np.linalg.qr(np.column_stack([np.ones(T), cs]))[0]
+        slow = B @ np.linalg.lstsq(B, cs - cs.mean(axis=0), rcond=None)[0]                 # (T, 2) P C c, P C s
+        shares[i] = (np.sum(cs.sum(axis=0) ** 2) / T**2) / max(np.sum(slow**2) / T, 1e-300)
+    return Q, shares
+
+
+def level_variance(tau, settings=VISettings(), dt=1e-3):
+    """(n,) [Nm^2] what the mean of a window tau (T, n) at rest with nothing changing (a baseline), sampled every dt
+    s, holds besides its level: its swing's share of its slow part (swing_share) x rms(slow_j)^2, and its noise
+    s_j^2 / T (_slow_and_white)."""
+    tau = _array("baseline", tau, "(T, n)", 2)
+    if tau.shape[0] < 4:
+        raise ValueError(f"baseline: expected a window of T >= 4 samples, found T = {tau.shape[0]}")
+    x = tau - tau.mean(axis=0)
+    slow, _, s = _slow_and_white(x, settings)
+    share = swing_share(x, dt, settings.swing_frequencies)[0]
+    return share * np.mean(slow * slow, axis=0) + s**2 / tau.shape[0]
 
 
 def precompute(Y, tau, noise_std=None, settings=VISettings(), speed=None, bias_std=None):

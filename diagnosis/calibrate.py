@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import checks
+import vi
 from dynamics import Robot, theta_of
 from error_model import ErrorModel
 from diagnosis.logs import load_log
@@ -42,13 +43,25 @@ def rest_windows(log, config: RestConfig = RestConfig()):
 class RestData:
     """The rest windows of one or more logs, as means: q (W, n), tau (W, n) [Nm], Y (W, n, 4) the mean payload
     regressor; before (W,) the index of the window before in the same rest run (-1: none); the windows' rows for
-    their full samples: log index, start, stop (W, 3)."""
+    their full samples: log index, start, stop (W, 3); gravity (W, n) [Nm] the robot model's G(q) at the mean pose,
+    level (W, n) [Nm^2] what each window's mean holds of its own slow part and noise (vi.level_variance) (None: not
+    known)."""
     q: np.ndarray
     tau: np.ndarray
     Y: np.ndarray
     before: np.ndarray
     rows: np.ndarray
     logs: list
+    gravity: np.ndarray | None = None
+    level: np.ndarray | None = None
+
+    def subset(self, keep) -> "RestData":
+        """The windows where keep (W,) bool is True; a window whose window before was dropped gets -1 there."""
+        keep = np.asarray(keep, dtype=bool)
+        new = np.cumsum(keep) - 1                                    # (W,) index among the kept windows
+        before = np.where((self.before >= 0) & keep[np.maximum(self.before, 0)], new[np.maximum(self.before, 0)], -1)
+        return RestData(self.q[keep], self.tau[keep], self.Y[keep], before[keep], self.rows[keep], self.logs,
+                        *(None if x is None else x[keep] for x in (self.gravity, self.level)))
 
     def pose_labels(self, tol=RestConfig.pose) -> np.ndarray:
         """(W,) the pose of each window: greedy clusters within tol rad on every joint, numbered from 0."""
@@ -66,7 +79,7 @@ class RestData:
 
 def rest_data(logs, robot: Robot, config: RestConfig = RestConfig()) -> RestData:
     """RestData of the loaded logs (diagnosis.logs.Log, tau_ext in the paper's sign)."""
-    q, tau, Y, before, rows = [], [], [], [], []
+    q, tau, Y, before, rows, gravity, level = [], [], [], [], [], [], []
     for i, log in enumerate(logs):
         if log.tau_ext is None:
             raise ValueError(f"logs[{i}]: expected tau_ext (or tau_J and a model), found none in {log.info.get('source')}")
@@ -76,10 +89,13 @@ def rest_data(logs, robot: Robot, config: RestConfig = RestConfig()) -> RestData
             q.append(log.q[a:b].mean(axis=0))
             tau.append(log.tau_ext[a:b].mean(axis=0))
             Y.append(robot.payload_regressor(log.q[a:b]).mean(axis=0))
+            gravity.append(robot.gravity(q[-1]))
+            level.append(vi.level_variance(log.tau_ext[a:b]))
             rows.append((i, a, b))
     n = robot.n
     return RestData(np.reshape(q, (-1, n)), np.reshape(tau, (-1, n)), np.reshape(Y, (-1, n, 4)),
-                    np.array(before, dtype=int), np.reshape(rows, (-1, 3)).astype(int), list(logs))
+                    np.array(before, dtype=int), np.reshape(rows, (-1, 3)).astype(int), list(logs),
+                    np.reshape(gravity, (-1, n)), np.reshape(level, (-1, n)))
 
 
 def pooled_payload(data: RestData, ridge=RestConfig.ridge) -> np.ndarray:
@@ -106,6 +122,27 @@ def payload_and_offset(data: RestData, config: RestConfig = RestConfig()) -> tup
     return x[:4], True, std
 
 
+def gravity_range(data: RestData, labels) -> tuple | None:
+    """((n,), (n,)) the lowest and highest of each joint's gravity torque G_j(q) over the poses (each pose's mean
+    over its windows; labels (W,) from pose_labels), None when data.gravity is not known."""
+    if data.gravity is None:
+        return None
+    gp = np.array([data.gravity[labels == i].mean(axis=0) for i in range(labels.max() + 1)])   # (P, n)
+    return tuple(gp.min(axis=0)), tuple(gp.max(axis=0))
+
+
+def referred_drift(data: RestData, r) -> np.ndarray | None:
+    """(n,) [Nm] what a window referred to the window before it keeps besides the two windows' own slow parts and
+    noise: sqrt(max(mean over the pairs of (r_w - r_b)^2 - level_w - level_b, 0)), r (W, n) the windows' residuals;
+    None without data.level or pairs."""
+    pairs = np.flatnonzero(data.before >= 0)
+    if data.level is None or not len(pairs):
+        return None
+    b = data.before[pairs]
+    excess = (r[pairs] - r[b]) ** 2 - data.level[pairs] - data.level[b]      # (pairs, n)
+    return np.sqrt(np.maximum(excess.mean(axis=0), 0.0))
+
+
 def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     """The error model of the robot in `data` (RestData) and a report. load "none": nothing was attached (phi = 0);
     "fit": one unchanged load, fitted with the model (pooled_payload): the part of the robot's error that looks
@@ -113,7 +150,10 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     r_p its mean over the windows of pose p (each pose counts once); offset = mean r_p; absolute = the RMS of r_p
     about it over the P poses, times sqrt(n P / (n P - k)) for the k values fitted (n offsets, 4 more with a load);
     correlation: that of r_p across joints, shrunk to independence by n / (n + P); referred = RMS of r_w - r_before over the pairs of consecutive windows of
-    one rest run (what a window referred to the level just before it still holds: drift, a load's vibration)."""
+    one rest run (what a window referred to the level just before it still holds: drift, a load's vibration), and
+    drift the part of it beyond the two windows' own slow parts (referred_drift: for a baseline given as a window);
+    gravity_range: the lowest and highest of each joint's G_j(q) over the poses (data.gravity), beyond which the
+    absolute error is not measured (ErrorModel.absolute_cov_at)."""
     if load not in ("none", "fit"):
         raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
     W, n = data.tau.shape
@@ -149,13 +189,17 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     np.fill_diagonal(corr, 1.0)
     model = ErrorModel(tuple(absolute), tuple(np.maximum(referred, floor)), tuple(offset),
                        source=f"calibrated on {len(data.logs)} log(s), {W} rest windows at {P} poses, load {load}",
-                       correlation=tuple(map(tuple, corr)))
+                       correlation=tuple(map(tuple, corr)),
+                       gravity_range=gravity_range(data, labels),
+                       drift=None if (drift := referred_drift(data, r)) is None else tuple(np.maximum(drift, floor)))
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
                   load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
                   referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
-                  shrinkage=lam, notes=notes)
+                  shrinkage=lam, notes=notes,
+                  gravity_range=None if model.gravity_range is None else [list(x) for x in model.gravity_range],
+                  gravity_share=model.gravity_share, drift=None if model.drift is None else list(model.drift))
     return model, report
 
 
@@ -170,6 +214,12 @@ def format_report(rep: dict) -> str:
               f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
               f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
               f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
+    if rep.get("drift"):
+        lines.append(f"  drift std [Nm]     {f(rep['drift'])}   (the same beside the two windows' own swings)")
+    if rep.get("gravity_range"):
+        lo, hi = rep["gravity_range"]
+        lines.append(f"  gravity G(q) [Nm]  " + " ".join(f"{a:+.0f}..{b:+.0f}".rjust(6) for a, b in zip(lo, hi))
+                     + f"   (measured within; beyond: {rep['gravity_share']:.0%} of the excess)")
     return "\n".join(lines + [f"  note: {x}" for x in rep["notes"]])
 
 

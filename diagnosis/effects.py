@@ -30,7 +30,10 @@ class EffectConfig:
     max_com: float = 0.3                     # m, payload CoM distance bound |r| from the ee origin: within reach of
     #                                          the hand (a tool or a held object; a CoM metres away is not a load)
     offset_max: float = 1.0                  # Nm, |tau_0| bound: the load-free torque offset of a Panda is a few
-    #                                          tenths, up to about 1 Nm on J1-J4 (panda_facts.md; Gaz fo <= 0.25 Nm)
+    #                                          tenths, up to about 1 Nm on J1-J4 (panda_facts.md; Gaz fo <= 0.25 Nm);
+    #                                          J5-J7: no published figure; on a real Panda's 36 beam logs
+    #                                          (docs/real_logs.md, 6 poses, load fitted) the static error of a
+    #                                          pose is at most 0.28, 0.38, 0.29 Nm (J1-J4: 0.44-0.99), within it
     scale_max: float = 2.0                   # upper bound of k_G, k_M: a model off by 2x is another arm
     friction_factor: float = 10.0            # friction, rotor bounds: this many times the largest value Gaz et al.
     #                                          2019 identified on a Panda (fv 0.23, fc 0.36, p1 1.28) or the

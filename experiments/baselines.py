@@ -24,7 +24,8 @@ class LeastSquares:
     def estimate(self, q, tau_ext, baseline=None, referred=None) -> Estimate:
         start = time.perf_counter()
         Y = self.robot.payload_regressor(np.asarray(q, dtype=float)).mean(axis=0)        # (n, 4)
-        t = np.asarray(tau_ext, dtype=float).mean(axis=0) - (0.0 if baseline is None else np.asarray(baseline))
+        t = np.asarray(tau_ext, dtype=float).mean(axis=0) - (0.0 if baseline is None else
+                                                              np.atleast_2d(np.asarray(baseline, float)).mean(axis=0))
         G = Y.T @ Y
         phi = np.linalg.solve(G + RIDGE * np.trace(G) * np.eye(4), Y.T @ t)
         theta = theta_of(phi) if phi[0] > 0 else np.r_[phi[0], 0.0, 0.0, 0.0]

@@ -8,6 +8,7 @@ import numpy as np
 
 from cpic import CPIC, Attractor
 from dynamics import Q_READY
+from error_model import as_error_model
 from experiments.baselines import methods
 from experiments.runner import PayloadChange, run
 from nn_train import DataConfig, random_pose
@@ -22,19 +23,21 @@ PAPER = {"table1": {"nn": [0.229e-3, 0.366e-3, 0.629e-3, 2.560e-3], "zero": [0.3
          "estimate_ms_median": 226.0, "attach_to_compensation_ms_median": 400.0}
 
 
-def datasets(count, seed, t_change=0.6, seconds=3.0):
+def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
     """`count` simulated static holds under CPIC at random poses (the network's training distribution of poses and
     payloads, other seeds), a payload attached at t_change, RME streaming in the loop: the windows the pipeline
     itself uses. Each: dict(theta (4,), q, tau (L, 7) referred to the 30 samples before the change for the windows
     of L = 50, 100, 200, 300 ms starting where the pipeline's window at the detection starts (its last
-    RMESettings().detection_window samples), detected (bool), delay [ms])."""
+    RMESettings().detection_window samples), detected (bool), delay [ms]). calibration: RME's error model
+    (error_model.as_error_model)."""
     rng, cfg, out = np.random.default_rng(seed), DataConfig(), []
     lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
     for _ in range(count):
         plant = Plant(PlantConfig.realistic(rng), rng=rng)
         robot = plant.robot
         q0, theta = random_pose(robot, rng, cfg), rng.uniform(lo, hi)
-        ctrl, est = CPIC(robot, Attractor(*robot.ee_pose(q0))), RME(robot, rng=np.random.default_rng(seed))
+        ctrl, est = CPIC(robot, Attractor(*robot.ee_pose(q0))), RME(robot, rng=np.random.default_rng(seed),
+                                                                       calibration=calibration)
         rec = run(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_change, theta[0], theta[1:])], q0=q0)
         Q = np.concatenate([rec.q[1:], [rec.last.q]])             # the samples after each step
         TAU = np.concatenate([rec.tau_ext[1:], [rec.last.tau_ext]])
@@ -65,14 +68,15 @@ def mse_table(est, data, length, at_rest=True):
     return np.mean(np.square(err), axis=0).tolist(), secs
 
 
-def closed_loop_trial(theta, seed, t_attach=0.75, seconds=2.5):
+def closed_loop_trial(theta, seed, t_attach=0.75, seconds=2.5, calibration=None):
     """Realistic plant held at the ready pose by CPIC, payload attached at t_attach, RME streaming in the loop.
     Returns (first estimate after the attach, last applied estimate, ms from the attach to the compensation being
     applied); the estimates are None when nothing was detected."""
     rng = np.random.default_rng(seed)
     plant = Plant(PlantConfig.realistic(rng), rng=rng)
     robot = plant.robot
-    est, ctrl = RME(robot, rng=np.random.default_rng(seed + 1)), CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
+    est = RME(robot, rng=np.random.default_rng(seed + 1), calibration=calibration)
+    ctrl = CPIC(robot, Attractor(*robot.ee_pose(Q_READY)))
     rec = run(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_attach, theta[0], theta[1:])], q0=Q_READY)
     on = np.flatnonzero((rec.t > t_attach) & np.any(rec.theta_hat != 0.0, axis=1))
     applied_at = rec.t[on[0]] if len(on) else None
@@ -81,17 +85,19 @@ def closed_loop_trial(theta, seed, t_attach=0.75, seconds=2.5):
     return (after[0], after[-1], latency) if after else (None, None, latency)
 
 
-def tables(n_datasets=100, trials=10, seed=0, log=print):
-    """Tables 1, 4 and 5 and the two latencies, as one dict (the JSON of `python sim.py bench --json`)."""
+def tables(n_datasets=100, trials=10, seed=0, log=print, calibration=None):
+    """Tables 1, 4 and 5 and the two latencies, as one dict (the JSON of `python sim.py bench --json`); every RME
+    with the error model `calibration` (None: the uncalibrated Panda's)."""
     t0 = time.perf_counter()
-    data = datasets(n_datasets, seed=10_000 + seed)
+    data = datasets(n_datasets, seed=10_000 + seed, calibration=calibration)
     detected = sum(d["detected"] for d in data)
     log(f"simulated {n_datasets} datasets in {time.perf_counter() - t0:.0f} s; {detected} detections")
-    nn, zero = RME(rng=np.random.default_rng(seed)), RME(settings=RMESettings(use_network=False),
-                                                        rng=np.random.default_rng(seed))
+    nn, zero = RME(rng=np.random.default_rng(seed), calibration=calibration), RME(
+        settings=RMESettings(use_network=False), rng=np.random.default_rng(seed), calibration=calibration)
     t1_nn, secs = mse_table(nn, data, 200)
     t1_zero, _ = mse_table(zero, data, 200)
-    t1_base = {k: mse_table(e, data, 200)[0] for k, e in methods(seed=seed).items() if k != "RME"}   # beside them
+    t1_base = {k: mse_table(e, data, 200)[0] for k, e in methods(seed=seed, calibration=calibration).items()
+               if k != "RME"}   # beside them
     w = RMESettings().detection_window                               # the window the pipeline estimates at detection
     t1_first = {k: mse_table(e, data, w, at_rest=False)[0] for k, e in (("nn", nn), ("zero", zero))}
     t4 = {str(L): mse_table(nn, data, L)[0] for L in (50, 100, 200, 300)}
@@ -101,7 +107,8 @@ def tables(n_datasets=100, trials=10, seed=0, log=print):
     for i, theta in enumerate(TABLE5):
         first, final, seen = [], [], 0
         for k in range(trials):
-            e0, e1, ms = closed_loop_trial(np.array(theta), seed=1000 * (i + 1) + k + seed)
+            e0, e1, ms = closed_loop_trial(np.array(theta), seed=1000 * (i + 1) + k + seed,
+                                              calibration=calibration)
             latencies.append(ms)
             if e0 is not None:
                 first.append(e0.mean), final.append(e1.mean)
@@ -149,7 +156,8 @@ def print_tables(res):
 
 
 def bench(args):
-    res = tables(seed=args.seed, log=(lambda *a: None) if args.json else print)
+    as_error_model(args.calibration)                     # a calibration that cannot be read: before the work
+    res = tables(seed=args.seed, log=(lambda *a: None) if args.json else print, calibration=args.calibration)
     print(json.dumps(res) if args.json else "", end="\n" if args.json else "")
     if not args.json:
         print_tables(res)

@@ -9,6 +9,7 @@ import numpy as np
 
 from cpic import JointHold
 from dynamics import Q_READY
+from error_model import as_error_model
 from experiments.baselines import methods
 from experiments.episodes import measure, simulated_window
 from nn_train import DataConfig, random_pose
@@ -56,7 +57,7 @@ def calibration_table(windows, est):
             "rz observed": coverage(*pick(seen)), "rz not observed": coverage(*pick([not s for s in seen]))}
 
 
-def rest_spread(rng, windows=20, theta=(0.8, 0.03, -0.02, 0.12), length=200):
+def rest_spread(rng, windows=20, theta=(0.8, 0.03, -0.02, 0.12), length=200, calibration=None):
     """One load held still at the ready pose (realistic plant, JointHold), `windows` consecutive rest windows of
     `length` samples from 1 s after the attachment, each referred to the same 100 ms before it: the spread (std)
     of the estimates across the windows against the mean reported std, per parameter."""
@@ -64,7 +65,7 @@ def rest_spread(rng, windows=20, theta=(0.8, 0.03, -0.02, 0.12), length=200):
     first = plant.reset(Q_READY)
     plant.schedule_payload(0.5, theta[0], theta[1:])
     log = measure(plant, JointHold(plant.robot, Q_READY), 1.5 + windows * length * plant.dt, first)
-    t, est = log["t"], RME(plant.robot, rng=np.random.default_rng(0))
+    t, est = log["t"], RME(plant.robot, rng=np.random.default_rng(0), calibration=calibration)
     ref = log["tau_ext"][(t > 0.4) & (t <= 0.5)].mean(axis=0)
     k0 = int(np.searchsorted(t, 1.5))
     E = [est.estimate(log["q"][k:k + length], log["tau_ext"][k:k + length], baseline=ref)
@@ -74,15 +75,17 @@ def rest_spread(rng, windows=20, theta=(0.8, 0.03, -0.02, 0.12), length=200):
                 rmse=np.sqrt(np.mean([(e.mean - theta) ** 2 for e in E], axis=0)).tolist())
 
 
-def calibration_benchmark(windows=200, seed=0):
+def calibration_benchmark(windows=200, seed=0, calibration=None):
     """The whole benchmark as one dict (the JSON of `python sim.py calibration --json`): RME's table, and the
-    baselines' (least squares: RMS error only; the range rule) on the same windows."""
+    baselines' (least squares: RMS error only; the range rule) on the same windows; RME with the error model
+    `calibration` (None: the uncalibrated Panda's)."""
     rng = np.random.default_rng(seed)
     wins = calibration_windows(windows, rng)
-    table = calibration_table(wins, RME(rng=np.random.default_rng(seed)))
+    table = calibration_table(wins, RME(rng=np.random.default_rng(seed), calibration=calibration))
     base = {name: calibration_table(wins, est)["all"] for name, est in methods(seed=seed).items() if name != "RME"}
-    return dict(table=table, baselines=base, rest=rest_spread(rng),
-                settings=dict(windows=windows, seed=seed, preset="realistic"))
+    return dict(table=table, baselines=base, rest=rest_spread(rng, calibration=calibration),
+                settings=dict(windows=windows, seed=seed, preset="realistic",
+                              calibration=None if calibration is None else str(calibration)))
 
 
 def print_benchmark(res):
@@ -102,6 +105,7 @@ def print_benchmark(res):
 
 
 def main(args):
-    res = calibration_benchmark(windows=args.windows, seed=args.seed)
+    as_error_model(args.calibration)                     # a calibration that cannot be read: before the work
+    res = calibration_benchmark(windows=args.windows, seed=args.seed, calibration=args.calibration)
     print(json.dumps(res)) if args.json else print_benchmark(res)
     return res

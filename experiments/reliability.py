@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cpic import CPIC, Attractor
+from error_model import as_error_model
 from experiments.runner import PayloadChange, Push, run
 from nn_train import DataConfig, random_pose
 from sim import Plant, PlantConfig
@@ -131,15 +132,18 @@ def estimator_class(spec: str):
         raise ValueError(f"estimator: {spec!r} cannot be loaded ({err})") from err
 
 
-def simulate(split: str, plant: str, kind: str, index: int, cfg: ReliabilityConfig, estimator: str = "rme:RME"):
-    """One episode: draw it from its seed, run CPIC + the estimator on the plant. (Record, episode)."""
+def simulate(split: str, plant: str, kind: str, index: int, cfg: ReliabilityConfig, estimator: str = "rme:RME",
+             calibration=None):
+    """One episode: draw it from its seed, run CPIC + the estimator on the plant. (Record, episode). calibration:
+    the estimator's error model, passed as its `calibration` (None: not passed)."""
     seed = episode_seed(split, plant, kind, index)
     rng = np.random.default_rng(seed)
     sim = Plant(PlantConfig.preset(plant, rng), rng=rng)
     robot = sim.robot
     q0 = random_pose(robot, rng, DataConfig())
     ep = draw_episode(rng, cfg, loads=kind == "load")
-    est = estimator_class(estimator)(robot, rng=np.random.default_rng(seed + 1))
+    extra = {} if calibration is None else dict(calibration=calibration)
+    est = estimator_class(estimator)(robot, rng=np.random.default_rng(seed + 1), **extra)
     events = [PayloadChange(c["t"], c["m"], c["r"]) for c in ep["changes"]]
     events += [Push(t, f, d, body="link7", offset=FLANGE) for t, f, d in ep["pushes"]]
     rec = run(sim, CPIC(robot, Attractor(*robot.ee_pose(q0))), cfg.seconds, estimator=est, events=events, q0=q0)
@@ -147,9 +151,9 @@ def simulate(split: str, plant: str, kind: str, index: int, cfg: ReliabilityConf
 
 
 def run_episode(task) -> dict:
-    """task = (split, plant, kind, index, cfg, estimator): the episode's scores (JSON-ready)."""
-    split, plant, kind, index, cfg, estimator = task
-    rec, ep = simulate(split, plant, kind, index, cfg, estimator)
+    """task = (split, plant, kind, index, cfg, estimator[, calibration]): the episode's scores (JSON-ready)."""
+    split, plant, kind, index, cfg, estimator, *calibration = task
+    rec, ep = simulate(split, plant, kind, index, cfg, estimator, *calibration)
     return dict(score(rec, ep, cfg), split=split, plant=plant, kind=kind, index=index, seed=ep["seed"])
 
 
@@ -335,14 +339,18 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
 
 
 def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realistic", estimator: str = "rme:RME",
-                jobs: int = 1, cfg: ReliabilityConfig = ReliabilityConfig(), log=print, first: int = 0) -> dict:
+                jobs: int = 1, cfg: ReliabilityConfig = ReliabilityConfig(), log=print, first: int = 0,
+                calibration=None) -> dict:
     """`episodes` load episodes and as many push-only ones of split/plant, indices first.., in `jobs` worker
     processes (the results do not depend on jobs; an estimator that times itself, as RME's asynchronous setting does,
-    may)."""
+    may). calibration: the estimator's error model (its `calibration` argument; None: not passed)."""
     estimator_class(estimator)                               # a bad spec fails here, not in a worker
+    if calibration is not None:
+        as_error_model(calibration)                          # a calibration that cannot be read: here too
     for kind in KINDS:
         episode_seed(split, plant, kind, 0)
-    tasks = [(split, plant, kind, i, cfg, estimator) for kind in KINDS for i in range(first, first + episodes)]
+    tasks = [(split, plant, kind, i, cfg, estimator, calibration) for kind in KINDS
+             for i in range(first, first + episodes)]
     t0 = time.perf_counter()
     if jobs == 1:
         results = []
@@ -358,13 +366,14 @@ def reliability(episodes: int = 20, split: str = "tuning", plant: str = "realist
     loads, pushes = results[:episodes], results[episodes:]
     return {"summary": summarise(loads, pushes, cfg), "episodes": loads, "push_episodes": pushes,
             "seconds": time.perf_counter() - t0,
-            "settings": dict(episodes=episodes, first=first, split=split, plant=plant, estimator=estimator, jobs=jobs)}
+            "settings": dict(episodes=episodes, first=first, split=split, plant=plant, estimator=estimator, jobs=jobs,
+                             calibration=None if calibration is None else str(calibration))}
 
 
 def main(args):
     res = reliability(args.episodes, args.split, args.plant, args.estimator, args.jobs,
-                      log=(lambda *a: None) if args.json else print, first=args.first)
-    if args.plant == "realistic" and args.estimator == "rme:RME":
+                      log=(lambda *a: None) if args.json else print, first=args.first, calibration=args.calibration)
+    if args.plant == "realistic" and args.estimator == "rme:RME" and args.calibration is None:   # its RME: uncalibrated
         res["limit_cycle"] = limit_cycle_trials(range(20))
     if args.json:
         print(json.dumps(res, default=_jsonable))
