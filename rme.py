@@ -62,6 +62,7 @@ class _Due:
     job: object = None
     phi_cov: np.ndarray | None = None    # for "back": the covariance (4, 4) of the earlier phi restored
     asked: int = 0                       # the sample the estimate was asked at (its Estimate.t)
+    departure: np.ndarray | None = None  # the level's departure (n,) from the reference then
 
 
 class RME:
@@ -109,7 +110,8 @@ class RME:
         self._level = None                             #   and settled at this departure d (n,)
         self._wrench = False                           # that departure has been judged a wrench (counted once)
         self._held = None                              # the settled level (n,) of a wrench still acting, if any
-        self._refused = None                           # the departure d (n,) whose estimate was not plausible
+        self._refused = None                           # a departure d (n,) not to estimate again (its estimate
+                                                       #   was refused, or made at rest and applied) until it moves
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._held_since = 0                           # the sample the compensation took its present value
         self._still = 0                                # samples every joint has been slower than rest_speed
@@ -283,7 +285,7 @@ class RME:
         self._still = self._still + 1 if np.abs(dq).max() < s.rest_speed else 0
         due, S = self._due, s.changes.short
         if due is not None and due.job is not None and due.job.done():
-            self._decided(*due.job.result(), due.level, due.kind, due.refine, due.asked)
+            self._decided(*due.job.result(), due.level, due.kind, due.refine, due.asked, due.departure)
         elif due is None and self.detector is not None:
             self._algorithm_1(q, r, J)
         elif due is None and self.model.reference is None:            # the first level: the robot's own bias
@@ -293,7 +295,7 @@ class RME:
             self._step(q, Y, J)
         due = self._due
         if due is not None and due.job is None and self._k >= due.at:
-            self._apply(due, q, Y, J)
+            self._apply(due, Y, J)
         comp = -(Y @ self._phi) if tool is None else -(Y @ self._phi) - tool
         self._last = np.minimum(np.maximum(comp, -self._limit), self._limit)
         return self._last
@@ -370,16 +372,19 @@ class RME:
         what remains is the whole payload's torque), now or as a job on the executor."""
         idx = np.arange(self._k - W, self._k) % len(self._q)
         Qw, Tw = self._q[idx], self._tau[idx] - level
+        m = self.model
+        now = None if m.reference is None else m.mean(self.settings.changes.short) - m.reference.level
         if self.correction is not None:
             Tw = Tw - self.correction.correction(Qw, self._dq[idx])
         if self.executor is None:
-            return self._decided(*self._estimate(Qw, Tw), level, kind, refine)
+            return self._decided(*self._estimate(Qw, Tw), level, kind, refine, departure=now)
         prepare = getattr(self.executor, "prepare", None)
         if prepare is not None:
             prepare(Qw, Tw)
-        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw), asked=self._k)
+        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw), asked=self._k,
+                         departure=now)
 
-    def _decided(self, e, S, level, kind, refine, asked=None):
+    def _decided(self, e, S, level, kind, refine, asked=None, departure=None):
         """An estimate of the window referred to `level`, asked at sample `asked` (None: now), is back: applied
         (after its own wall time, if settings.asynchronous, or from the next sample with an executor) if the arm can
         carry it."""
@@ -395,7 +400,7 @@ class RME:
                 if self.model.reference is not None else None
             return
         delay = (math.ceil(e.seconds * s.rate) if s.asynchronous else 0) if self.executor is None else 1
-        self._due = _Due(e, self._k + delay, kind, refine, level)
+        self._due = _Due(e, self._k + delay, kind, refine, level, departure=departure)
 
     def _plausible(self, theta) -> bool:
         """Whether theta (4,) is a payload the arm can carry: mass <= 1.2 max_mass and, from 0.1 kg on, CoM within
@@ -403,10 +408,10 @@ class RME:
         s = self.settings
         return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
 
-    def _apply(self, due, q, Y, J):
+    def _apply(self, due, Y, J):
         """Compensate the decided estimate from now on; the residuals held are re-expressed under it. An estimate of
-        a window at rest is the payload hypothesis' posterior for that level: what it leaves is the bias at this pose
-        under it, the reference from now on (estimating the same level again would return the same)."""
+        a window at rest is the payload hypothesis' posterior for its level: what it leaves (the robot's error at
+        this pose, beyond the reference's) is not estimated again until the level moves (it would return the same)."""
         self._due, s = None, self.settings
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
@@ -424,8 +429,8 @@ class RME:
         due.estimate.applied = self._k / self.settings.rate
         self._since, self._wrench, self._refused, self._held = None, False, None, None
         self._refine = due.level if due.refine else None
-        if due.kind != "back" and not due.refine and self._still >= 2 * s.changes.short:
-            self.model.set_reference(q, self._gradient(q))
+        if due.kind != "back" and not due.refine and due.departure is not None:
+            self._refused = due.departure - d            # (the level it was made of, under the new compensation)
 
 
 def _phi_cov(theta, cov):
