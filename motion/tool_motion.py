@@ -31,8 +31,12 @@ class MotionSettings:
     #                                tracks less alike with and without the tool: one realistic tool's diagonal came
     #                                out 18-26 % low there, 2-6 % at 1.1-1.5 Hz, docs/tool_identification.md)
     max_duration: float = 20.0     # s: the whole motion at most (the target)
-    kp: tuple = (600.0,) * 4 + (50.0,) * 3     # Nm/rad: cpic.JointHold's gains (stiff enough that a 3 kg load moves
-    kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad   the arm by a few mrad)
+    kp: tuple = (600.0,) * 4 + (50.0, 50.0, 150.0)   # Nm/rad: cpic.JointHold's gains (a 3 kg load moves the arm
+    kd: tuple = (40.0,) * 4 + (4.0, 4.0, 7.0)        # Nm s/rad   by a few mrad), joint 7 three times stiffer (the
+    #                                same damping ratio, kd ~ sqrt(kp)): the tool's inertia then changes joint 7's
+    #                                tracking 3 times less, and with it the drives' friction and rotor-inertia torque
+    #                                of the two runs' difference, which read Izz 5.7 % low at 50 (1.7 % at 150; the
+    #                                whole wrist at 150 read Ixx, Iyy 4.5 % high: docs/tool_identification.md)
     soft: float = 0.1              # after a push the spring is kp x soft about where the arm is (a person moves it)
     stop_after: float = 0.2        # s from the push to the run's end (`finished`): the soft spring and the full
     #                                dampers take the arm's speed off meanwhile (the wrist's time constant I / kd is
