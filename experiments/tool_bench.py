@@ -94,4 +94,5 @@ def _print_row(r):
         print(f"  {name:9s} mass {1e3 * e['mass']:+7.1f} g ({100 * e['mass'] / t['mass']:+.2f} %), CoM "
               f"{[round(1e3 * e[k], 1) for k in ('com_x', 'com_y', 'com_z')]} mm, I diag "
               f"{[round(100 * e[k] / t[k], 1) for k in ('Ixx', 'Iyy', 'Izz')]} %  within {r[name]['within']}, "
-              f"observed {[r[name]['observed'][k] for k in ('Ixx', 'Iyy', 'Izz')]}, beyond 2 std {r[name]['beyond_2std']}")
+              f"observed {[r[name]['observed'][k] for k in ('Ixx', 'Iyy', 'Izz')]}, "
+              f"beyond 2 std {r[name]['beyond_2std']}")

@@ -34,8 +34,8 @@ class ToolFitSettings:
     #                                track the reference a little differently; the drives' own torques differ with it)
     drive_spread: bool = True       # referred: each std includes how much the result moves when the drives' model of
     #                                the motions' difference loses its rotor-inertia or its friction terms
-    #                                (_drive_model_spread; without it the errors on the benchmark were 1.2-1.6 std rms,
-    #                                docs/tool_identification.md)
+    #                                (_drive_model_spread; on the benchmark the errors were 1.25-1.5 std rms without
+    #                                it, 0.8-1.1 with it, tuning and held-out seeds, docs/tool_identification.md)
     drift: bool = True              # referred: each joint's sensor offset may differ between the two runs (a Panda's
     #                                torque sensors drift with temperature: 0.05-0.08 Nm between windows minutes
     #                                apart on the beam logs, docs/real_logs.md); a constant per joint is partialled
@@ -124,8 +124,8 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
     value, J = _parameters(pi), _jacobian(pi)
     noise = np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),           # white residual, and correlated
                        np.einsum("ki,ij,kj->k", J, _sandwich(Yr, tr, info, s), J))
-    drives = _drive_model_spread(Y, tau, Z, value, fit_settings) if reference is not None and s.state_difference \
-        and s.drive_spread else np.zeros(len(NAMES))
+    spread = reference is not None and s.state_difference and s.drive_spread
+    drives = _drive_model_spread(Y, tau, Z, value, fit_settings) if spread else np.zeros(len(NAMES))
     std = np.sqrt(np.maximum(noise, 0.0) + drives ** 2)
     observed = _observed(value, std, s.resolution)
     notes = [f"{k} not observed: the motion leaves it at {value[i]:.4g} +- {2 * std[i]:.2g} (2 std)"
