@@ -116,9 +116,8 @@ def format_text(rep: dict) -> str:
               "franka_ros2:", f"  {rep['franka_ros2_set_load']['command']}"]
     if "motion" in rep:
         m = rep["motion"]
-        lines.append(f"motion: {m.get('seconds')} s, max |dq| "
-                     f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
-                     f"closest limit {m.get('min_limit_distance_rad')} rad")
+        lines.append(f"motion: {m.get('seconds', 0.0):.2f} s, max |dq| {max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
+                     f"closest limit {m.get('min_limit_distance_rad') or 0.0:.3f} rad")
         if "storage" in m:
             st = m["storage"]
             lines.append(f"storage check (this motion with this tool on the ideal plant, its weight compensated): the "
