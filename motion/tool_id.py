@@ -32,6 +32,10 @@ class ToolFitSettings:
     state_difference: bool = True   # referred: partial out each joint's friction and rotor inertia of the
     #                                difference between the two motions (the tool's weight and inertia make the arm
     #                                track the reference a little differently; the drives' own torques differ with it)
+    drive_spread: bool = True       # referred: each std includes how much the result moves when the drives' model of
+    #                                the motions' difference loses its rotor-inertia or its friction terms
+    #                                (_drive_model_spread; on the benchmark the errors were 1.25-1.5 std rms without
+    #                                it, 0.8-1.1 with it, tuning and held-out seeds, docs/tool_identification.md)
     drift: bool = True              # referred: each joint's sensor offset may differ between the two runs (a Panda's
     #                                torque sensors drift with temperature: 0.05-0.08 Nm between windows minutes
     #                                apart on the beam logs, docs/real_logs.md); a constant per joint is partialled
@@ -44,8 +48,8 @@ class ToolFitSettings:
 @dataclass
 class ToolFit:
     """A fit: the tool (flange frame), pi (10,) in the ee frame, value / std / observed per NAMES (std 1-sigma: the
-    larger of the white-residual one and the one with the residual's correlation over 0.3 s, _sandwich; a lower
-    bound still where the model misses something systematic), the fit's FitInfo, rows used, the
+    noise's, the larger of the white-residual one and the one with the residual's correlation over 0.3 s, _sandwich,
+    with the drives' model's, drive_std, _drive_model_spread, added in quadrature), the fit's FitInfo, rows used, the
     per-joint residual rms [Nm], and notes (what the data could not tell)."""
     tool: Tool
     pi: np.ndarray
@@ -56,10 +60,12 @@ class ToolFit:
     rows: int
     residual: np.ndarray
     notes: list
+    drive_std: dict = field(default_factory=dict)   # per NAMES the part of std from the drives' model
 
     def report(self) -> dict:
         return {"parameters": {k: {"value": self.value[k], "std": self.std[k], "interval_2std": [
-            self.value[k] - 2 * self.std[k], self.value[k] + 2 * self.std[k]], "observed": self.observed[k]}
+            self.value[k] - 2 * self.std[k], self.value[k] + 2 * self.std[k]], "observed": self.observed[k],
+            "std_of_drive_model": self.drive_std.get(k, 0.0)}
             for k in NAMES}, "status": self.info.status, "rows": self.rows,
             "residual_rms_Nm": np.round(self.residual, 4).tolist(), "notes": self.notes}
 
@@ -107,19 +113,20 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
     q, dq, ddq, tau = (a[rows] for a in arrays)
     Y = robot.body_regressor(q, dq, ddq)                    # (T, n, 10)
     if reference is None:
-        Yr, tr = partial_out(Y, tau, nuisance(dq, ddq, s.friction_widths))
-        pi, info = fit_inertia(Yr, tr, np.zeros(4), None, s.fit)
+        Z, fit_settings = nuisance(dq, ddq, s.friction_widths), s.fit
     else:       # referred: the offsets are the reference's too; what the drives add for the states' difference stays
         Z = nuisance(dq, ddq, s.friction_widths) - nuisance(dq_ref[rows], ddq_ref[rows], s.friction_widths)
         Z[:, :, 0] = 1.0 if s.drift else 0.0             # the offsets' column (1 - 1 = 0 in the difference)
-        if not s.state_difference:
-            Z = Z[:, :, :1]
-        Yr, tr = partial_out(Y, tau, Z) if s.state_difference or s.drift else (Y, tau)
-        pi, info = fit_inertia(Yr, tr, np.zeros(4), None, dataclasses.replace(s.fit, offsets=False))
+        Z = Z if s.state_difference else Z[:, :, :1]
+        fit_settings = dataclasses.replace(s.fit, offsets=False)
+    pi, info, Yr, tr = _fit(Y, tau, Z, fit_settings)
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)
-    std = np.sqrt(np.maximum(np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),      # white residual, and
-                                        np.einsum("ki,ij,kj->k", J, _sandwich(Yr, tr, info, s), J)), 0.0))  # correlated
+    noise = np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),           # white residual, and correlated
+                       np.einsum("ki,ij,kj->k", J, _sandwich(Yr, tr, info, s), J))
+    spread = reference is not None and s.state_difference and s.drive_spread
+    drives = _drive_model_spread(Y, tau, Z, value, fit_settings) if spread else np.zeros(len(NAMES))
+    std = np.sqrt(np.maximum(noise, 0.0) + drives ** 2)
     observed = _observed(value, std, s.resolution)
     notes = [f"{k} not observed: the motion leaves it at {value[i]:.4g} +- {2 * std[i]:.2g} (2 std)"
              for i, k in enumerate(NAMES) if not observed[i]]
@@ -130,7 +137,24 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         notes.append(f"the least-squares optimum was not a physical body; the nearest physical one is given "
                      f"({info.status})")
     return ToolFit(tool, pi, dict(zip(NAMES, value.tolist())), dict(zip(NAMES, std.tolist())),
-                   dict(zip(NAMES, observed)), info, len(rows), info.residual, notes)
+                   dict(zip(NAMES, observed)), info, len(rows), info.residual, notes, dict(zip(NAMES, drives.tolist())))
+
+
+def _fit(Y, tau, Z, settings: FitSettings):
+    """fit_inertia on Y (T, n, 10), tau (T, n) with each joint's Z (T, n, k) partialled out (none if Z is all 0):
+    (pi, FitInfo, the partialled Y and tau)."""
+    Yr, tr = partial_out(Y, tau, Z) if np.any(Z) else (Y, tau)
+    pi, info = fit_inertia(Yr, tr, np.zeros(4), None, settings)
+    return pi, info, Yr, tr
+
+
+def _drive_model_spread(Y, tau, Z, value, settings: FitSettings) -> np.ndarray:
+    """(10,) per NAMES: the rms change of the result when the fit is made without the drives' rotor-inertia column
+    (Z[..., -1]) and without their friction columns (Z[..., 1:-1]): how much the result leans on the model of what the
+    drives add for the two motions' difference (a torque the tool itself causes, measured through noisy dq and ddq)."""
+    keep = [list(range(Z.shape[2] - 1)), [0, Z.shape[2] - 1]]
+    moved = [_parameters(_fit(Y, tau, Z[:, :, k], settings)[0]) - value for k in keep]
+    return np.sqrt(np.mean(np.square(moved), axis=0))
 
 
 def _sandwich(Y, tau, info: FitInfo, s: ToolFitSettings) -> np.ndarray:

@@ -31,9 +31,17 @@ class MotionSettings:
     #                                tracks less alike with and without the tool: one realistic tool's diagonal came
     #                                out 18-26 % low there, 2-6 % at 1.1-1.5 Hz, docs/tool_identification.md)
     max_duration: float = 20.0     # s: the whole motion at most (the target)
-    kp: tuple = (600.0,) * 4 + (50.0,) * 3     # Nm/rad: cpic.JointHold's gains (stiff enough that a 3 kg load moves
-    kd: tuple = (40.0,) * 4 + (4.0,) * 3       # Nm s/rad   the arm by a few mrad)
+    kp: tuple = (600.0,) * 4 + (50.0, 50.0, 150.0)   # Nm/rad: cpic.JointHold's gains (a 3 kg load moves the arm
+    kd: tuple = (40.0,) * 4 + (4.0, 4.0, 7.0)        # Nm s/rad   by a few mrad), joint 7 three times stiffer (the
+    #                                same damping ratio, kd ~ sqrt(kp)): the tool's inertia then changes joint 7's
+    #                                tracking 3 times less, and with it the drives' friction and rotor-inertia torque
+    #                                of the two runs' difference, which read Izz 5.7 % low at 50 (1.7 % at 150; the
+    #                                whole wrist at 150 read Ixx, Iyy 4.5 % high: docs/tool_identification.md)
     soft: float = 0.1              # after a push the spring is kp x soft about where the arm is (a person moves it)
+    stop_after: float = 0.2        # s from the push to the run's end (`finished`): the soft spring and the full
+    #                                dampers take the arm's speed off meanwhile (the wrist's time constant I / kd is
+    #                                10-20 ms, joints 1-4's 30-80 ms); the loop then ramps the command to zero and
+    #                                hands the arm back to the robot (franka.run_loop's end)
     push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushWatch:
     #                                with nobody touching, 0.24-0.80 Nm measured on the realistic plant; a force at
     #                                the flange of 7-14 N, by its direction, crosses them at the ready pose)
@@ -107,7 +115,7 @@ class PushWatch:
         self._S = np.zeros((n, 6, 6))                       # per joint sum of z z^T, z = (Y_j (4), tau_j, 1)
         self._phi, self._b, self._k, self._over = np.zeros(4), None, 0, 0
         self.start = int(round(settings.settle * settings.rate))   # samples before the watch starts
-        self._limit = np.asarray(settings.push, dtype=float)
+        self.limit = np.asarray(settings.push, dtype=float)
         self._prior = np.diag(1.0 / np.square([10.0, 1.0, 1.0, 1.0]))   # kg, kg m: keeps phi finite at one pose
         self.residual = np.zeros(n)                         # the last r (n,) [Nm]
         self.predicted = np.zeros(n)                        # the last Y phi + b (n,) [Nm] (0 before the watch starts)
@@ -128,7 +136,7 @@ class PushWatch:
         self.predicted = Y @ self._phi + self._b
         self.residual = tau - self.predicted
         self.peak = np.maximum(self.peak, np.abs(self.residual))
-        self._over = self._over + 1 if np.any(np.abs(self.residual) > self._limit) else 0
+        self._over = self._over + 1 if np.any(np.abs(self.residual) > self.limit) else 0
         return self._over >= self.settings.push_samples
 
     def _refit(self):
@@ -145,9 +153,10 @@ class ExcitationController:
     inverse dynamics, a spring-damper to the moving reference: at 0.4 rad/s a person meets a spring, never a fast
     arm), less the watch's fit of the static tau_ext (settings.compensate). On a push (PushWatch) the motion is
     abandoned at once: the reference stops where the arm is, the spring drops to settings.soft of its stiffness and
-    the compensation keeps the fit of the samples before the push. step(q, dq, compensation, tau_ext) -> (tau (n,),
-    None) as cpic's controllers; after the reference it holds its last point. abandoned: the time [s] of the push or
-    None."""
+    the compensation keeps the fit of the samples before the push; settings.stop_after later `finished` says the run
+    is over (robot.loop.run_loop then ends it). step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's
+    controllers; after the reference it holds its last point. abandoned: the time [s] of the push or None; pushed_joint:
+    the joint (1-based) furthest over its threshold when the push was confirmed, push_residual its r [Nm]."""
 
     def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings()):
         self.robot, self.settings = robot, settings
@@ -155,6 +164,15 @@ class ExcitationController:
         self.kp, self.kd = np.asarray(settings.kp, float), np.asarray(settings.kd, float)
         self.watch = PushWatch(robot, settings)
         self.k, self.abandoned, self._hold = 0, None, None
+        self.pushed_joint, self.push_residual = None, None
+
+    @property
+    def finished(self) -> str | None:
+        """None while the run is to go on; once settings.stop_after has passed since a push, why it ends."""
+        if self.abandoned is None or self.k < (self.abandoned + self.settings.stop_after) * self.settings.rate:
+            return None
+        return (f"push: the motion abandoned at {self.abandoned:.3f} s (joint {self.pushed_joint}, |tau_ext - "
+                f"predicted| {abs(self.push_residual):.2f} Nm), the run ended {self.settings.stop_after} s later")
 
     @property
     def duration(self) -> float:
@@ -164,6 +182,9 @@ class ExcitationController:
         q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
         if self.abandoned is None and tau_ext is not None and self.watch.update(q, tau_ext):
             self.abandoned, self._hold = self.k / self.settings.rate, q.copy()
+            over = np.abs(self.watch.residual) / self.watch.limit
+            self.pushed_joint = int(np.argmax(over)) + 1
+            self.push_residual = float(self.watch.residual[self.pushed_joint - 1])
         if self._hold is not None:
             tau = self.robot.gravity(q) + self.settings.soft * self.kp * (self._hold - q) - self.kd * dq
         else:

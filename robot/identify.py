@@ -49,12 +49,13 @@ def sim_backend(seed: int, tool=None, run: int = 0, preset: str = "realistic"):
 
 
 def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings(), seconds=None):
-    """The excitation about backend.initial.q through robot.loop.run_loop (for `seconds`, default: all of it):
-    (log arrays, summary, controller)."""
+    """The excitation about backend.initial.q through robot.loop.run_loop (for `seconds`, default: all of it; a push
+    ends it settings.stop_after after the push): (log arrays, summary, controller)."""
     controller = ExcitationController(robot, backend.initial.q, settings)
     seconds = controller.duration if seconds is None else seconds
     summary, log = run_loop(backend, robot, controller, None, seconds, print_every=np.inf)
     summary["abandoned_at_s"] = controller.abandoned
+    summary["pushed_joint"] = controller.pushed_joint
     summary["push_watch_peak_Nm"] = controller.watch.peak.round(3).tolist()   # the largest |r| per joint seen
     summary["max_abs_dq"] = np.abs(log["dq"]).max(axis=0).round(4).tolist() if len(log["dq"]) else []
     lo, hi = robot.model.jnt_range.T
@@ -115,9 +116,8 @@ def format_text(rep: dict) -> str:
               "franka_ros2:", f"  {rep['franka_ros2_set_load']['command']}"]
     if "motion" in rep:
         m = rep["motion"]
-        lines.append(f"motion: {m.get('seconds')} s, abandoned at {m.get('abandoned_at_s')} s, max |dq| "
-                     f"{max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
-                     f"closest limit {m.get('min_limit_distance_rad')} rad")
+        lines.append(f"motion: {m.get('seconds', 0.0):.2f} s, max |dq| {max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
+                     f"closest limit {m.get('min_limit_distance_rad') or 0.0:.3f} rad")
         if "storage" in m:
             st = m["storage"]
             lines.append(f"storage check (this motion with this tool on the ideal plant, its weight compensated): the "
@@ -130,7 +130,38 @@ def _emit(rep, args, fit):
     if args.save:
         save_tool(args.save, fit.tool, rep["fit"])
     print(json.dumps(rep, indent=1) if args.json else format_text(rep))
-    return 0 if rep.get("motion", {}).get("abandoned_at_s") is None else 3
+    return 0
+
+
+def _emit_abandoned(summary: dict, args, which: str) -> int:
+    """A push ended the motion: what stopped it and when, no fit (the motion is not the one the fit and the reference
+    assume; rerun it). Exit status 3."""
+    rep = {"abandoned_at_s": summary["abandoned_at_s"], "run": which, "stopped": summary["stopped"],
+           "seconds": summary["seconds"], "motion": summary, "fit": None,
+           "note": f"a push abandoned the {which} motion at {summary['abandoned_at_s']:.3f} s: no tool is identified "
+                   f"(nothing saved{'' if not args.save else ' to ' + args.save}); rerun it untouched"}
+    print(json.dumps(rep, indent=1) if args.json else "\n".join(
+        [f"ABANDONED: {rep['note']}", f"  {summary['stopped']}; the run lasted {summary['seconds']:.3f} s"]))
+    return 3
+
+
+def abandoned_in(path) -> float | None:
+    """The time [s] a push abandoned the motion logged in `path` (a franka.py --identify --log .npz), else None."""
+    if not str(path).lower().endswith(".npz"):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            t = float(z["abandoned_at_s"]) if "abandoned_at_s" in z else np.nan
+    except (OSError, ValueError):
+        return None                                    # load_log reports a file it cannot read
+    return None if np.isnan(t) else t
+
+
+def _refuse_abandoned(path, name: str):
+    t = abandoned_in(path)
+    if t is not None:
+        raise ValueError(f"{name}: expected a log of the whole motion, found one a push abandoned at {t:.3f} s "
+                         f"({path!r}): rerun it untouched")
 
 
 def franka_identify(args, run_loop, make_backend) -> int:
@@ -138,17 +169,24 @@ def franka_identify(args, run_loop, make_backend) -> int:
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
     --log FILE with the flange empty) if given. Prints the report (--json) with the storage check of this motion with
     the tool found (motion.tool_storage, about 15 s), writes --save and --log. run_loop and
-    make_backend: franka.py's. Exit status 0, or 3 when a push abandoned the motion (the fit is of what ran)."""
+    make_backend: franka.py's. Exit status 0; 3 when a push abandoned a motion: the run ends settings.stop_after
+    after the push, the report says when and which joint, and nothing is fitted or saved (the log, if asked for,
+    is written and marked, so it is refused as a --reference or by rme.py identify)."""
     if args.dry_run or (args.sim_tool is not None and not args.sim):
         raise ValueError(f"--identify: expected a motion (no --dry-run) and --sim-tool only with --sim, found "
                          f"--dry-run {args.dry_run}, --sim {args.sim}, --sim-tool {args.sim_tool}")
     robot = Robot.panda()
     truth = None if args.sim_tool is None else make_tool(args.sim_tool[0], args.sim_tool[1:4],
                                                          np.diag(args.sim_tool[4:7]), "--sim-tool")
+    if args.reference is not None:
+        _refuse_abandoned(args.reference, "--reference")
     reference = None if args.reference is None else load_log(args.reference, LOG)
     if args.sim:
         if reference is None:
-            reference = prepared(run_motion(sim_backend(args.seed, None, 0), robot, run_loop)[0])
+            ref_log, ref_summary, _ = run_motion(sim_backend(args.seed, None, 0), robot, run_loop)
+            if ref_summary["abandoned_at_s"] is not None:
+                return _emit_abandoned(ref_summary, args, "reference (flange empty)")
+            reference = prepared(ref_log)
         backend = sim_backend(args.seed, truth, 1)
     else:                                              # the robot's backend, as franka.py builds it
         try:
@@ -157,8 +195,11 @@ def franka_identify(args, run_loop, make_backend) -> int:
             print(f"franka.py: not started: {err}", file=sys.stderr)
             return 2
     log, summary, _ = run_motion(backend, robot, run_loop)
-    if args.log:
-        np.savez(args.log, **log, tau_ext_sign="paper")
+    abandoned = summary["abandoned_at_s"]
+    if args.log:                                       # an abandoned motion's log says so (refused as a reference)
+        np.savez(args.log, **log, tau_ext_sign="paper", abandoned_at_s=np.nan if abandoned is None else abandoned)
+    if abandoned is not None:
+        return _emit_abandoned(summary, args, "tool" if args.sim else "identification")
     fit = fit_logs(robot, prepared(log), reference)
     summary["storage"] = dataclasses.asdict(storage_check(fit.tool, backend.initial.q))   # this motion, this tool
     return _emit(report(fit, truth, summary), args, fit)
@@ -174,6 +215,9 @@ def log_main(argv=None, prog: str = "rme.py identify") -> int:
     args = ap.parse_args(argv)
     robot = Robot.panda()
     try:
+        _refuse_abandoned(args.log, "log")
+        if args.reference is not None:
+            _refuse_abandoned(args.reference, "--reference")
         log = load_log(args.log, LOG)
         reference = None if args.reference is None else load_log(args.reference, LOG)
         fit = fit_logs(robot, log, reference)

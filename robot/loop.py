@@ -93,7 +93,8 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
     """Each cycle: state = backend.read(); tau_ext = -tau_ext_hat_filtered (paper sign); comp = estimator.update;
     tau, _ = controller.step(q, dq, comp, tau_ext); cmd = safety.command(tau, G(q)); backend.write(cmd); then, while
     the robot has yet to send the next state: the log, the estimate's poll and any garbage collection (callback_s is
-    the time from the state to its command). G comes from the controller's own step when it is a CPIC on `robot`.
+    the time from the state to its command); a controller whose `finished` is set (a reason) ends the run there,
+    `stopped` saying why. G comes from the controller's own step when it is a CPIC on `robot`.
     A tau_ext that is not finite or beyond RME's max_abs_torque (a faulty sample: RME drops it) reaches the controller
     as the last good one and is logged as read (the summary's faulty_tau_ext counts them). A dry run writes zeros
     (the robot backends then command nothing) and prints what it would command every print_every s. Ends after
@@ -152,7 +153,11 @@ def run_loop(backend, robot: Robot, controller, estimator=None, seconds: float =
             if collect:
                 _collect_garbage()
             rec["after_s"][k] = time.perf_counter() - t_written
-        k = steps
+            if getattr(controller, "finished", None):  # the controller ends the run (a push abandons a motion)
+                stopped, k = controller.finished, k + 1
+                break
+        else:
+            k = steps
     except KeyboardInterrupt:
         stopped = "interrupted (Ctrl-C)"
     except BaseException as err:
