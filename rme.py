@@ -111,7 +111,7 @@ class RME:
         self._wrench = False                           # that departure has been judged a wrench (counted once)
         self._held = None                              # the settled level (n,) of a wrench still acting, if any
         self._refused = None                           # a departure d (n,) not to estimate again (its estimate
-                                                       #   was refused, or made at rest and applied) until it moves
+                                                       #   was refused, or made and applied) until it moves
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._held_since = 0                           # the sample the compensation took its present value
         self._still = 0                                # samples every joint has been slower than rest_speed
@@ -409,9 +409,10 @@ class RME:
         return bool((theta[0] < 0.1 or np.all(np.abs(theta[1:]) <= s.max_com)) and theta[0] <= 1.2 * s.max_mass)
 
     def _apply(self, due, Y, J):
-        """Compensate the decided estimate from now on; the residuals held are re-expressed under it. An estimate of
-        a window at rest is the payload hypothesis' posterior for its level: what it leaves (the robot's error at
-        this pose, beyond the reference's) is not estimated again until the level moves (it would return the same)."""
+        """Compensate the decided estimate from now on; the residuals held are re-expressed under it. An estimate is
+        the payload hypothesis' posterior for the level it was made of: what it leaves (the robot's error at this
+        pose beyond the reference's) is not estimated again until the level moves (it would return the same); one
+        made in motion is made again at rest, as owed."""
         self._due, s = None, self.settings
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
@@ -429,7 +430,7 @@ class RME:
         due.estimate.applied = self._k / self.settings.rate
         self._since, self._wrench, self._refused, self._held = None, False, None, None
         self._refine = due.level if due.refine else None
-        if due.kind != "back" and not due.refine and due.departure is not None:
+        if due.kind != "back" and due.departure is not None:
             self._refused = due.departure - d            # (the level it was made of, under the new compensation)
 
 
