@@ -223,10 +223,10 @@ class ChangeModel:
         return bool(u @ (u / self.variance(q, Y, moving=False)) <= self.s.detect)
 
     def same(self, d, e, q, Y=None) -> bool:
-        """Whether two departures d, e (n,) differ by less than the sensor's noise, friction and the pose error say a
-        change does (chi^2 <= detect): a level that drifts with friction as the arm moves is still the same level."""
+        """Whether two departures d, e (n,) differ by less than the sensor's noise and the pose error say a change
+        does (chi^2 <= detect; friction left out: a level that moves with the arm's speed is not the same level)."""
         u = np.asarray(d) - np.asarray(e)
-        return bool(u @ (u / self.variance(q, Y, moving=False)) <= self.s.detect)
+        return bool(u @ (u / self.variance(q, Y, moving=False, friction=False)) <= self.s.detect)
 
     def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and

@@ -110,6 +110,7 @@ class RME:
         self._level = None                             #   and settled at this departure d (n,)
         self._wrench = False                           # that departure has been judged a wrench (counted once)
         self._held = None                              # the settled level (n,) of a wrench still acting, if any
+        self._best, self._best_since = None, 0         # the most probable hypothesis, and since which sample
         self._refused = None                           # a departure d (n,) not to estimate again (its estimate
                                                        #   was refused, or made and applied) until it moves
         self._refine = None                            # the reference level an estimate at rest is owed against
@@ -311,7 +312,7 @@ class RME:
         if m.departure(q, Y) <= s.changes.detect:
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
-            self._since, self._wrench, self._refused, self._held = None, False, None, None
+            self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
@@ -321,7 +322,11 @@ class RME:
             self._since, self._level = k, v.d          # the level's age: since it settled where it is now
         elif v.best == "wrench" and k - self._since >= S and self._still >= S:
             self._held = v.d                           # a wrench holding the arm still: a return may come under it
-        young = k - self._since < s.changes.patience * s.rate      # (a level younger than that may still change)
+        if v.best != self._best:
+            self._best, self._best_since = v.best, k
+        young = max(k - self._since, k - self._best_since) < s.changes.patience * s.rate   # (a level younger than
+        #   that may still change; a level drifting with friction on an arm that keeps moving is never steady, yet
+        #   a hypothesis the most probable for that long has had the evidence waiting would add)
         if v.sure < (s.changes.confidence if young else 0.5) or (moving and not (v.best == "payload" or (
                 v.best == "back" and m.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under),
                                                 q, Y)))):
@@ -428,7 +433,7 @@ class RME:
         if self.detector is not None:
             self.detector.shift(d, self._P @ d)
         due.estimate.applied = self._k / self.settings.rate
-        self._since, self._wrench, self._refused, self._held = None, False, None, None
+        self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
         self._refine = due.level if due.refine else None
         if due.kind != "back" and due.departure is not None:
             self._refused = due.departure - d            # (the level it was made of, under the new compensation)
