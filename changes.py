@@ -121,9 +121,9 @@ def cholesky(C):
         return cho_factor(C + (1e-12 * np.trace(C) + 1e-300) * np.eye(len(C)), lower=True, check_finite=False)
 
 
-def gaussian_log_pdf(x, C) -> float:
-    """log N(x; 0, C) for x (n,), C (n, n) positive definite."""
-    f = cholesky(C)
+def gaussian_log_pdf(x, C, f=None) -> float:
+    """log N(x; 0, C) for x (n,), C (n, n) positive definite (f: its `cholesky`, if already factored)."""
+    f = cholesky(C) if f is None else f
     return float(-0.5 * x @ cho_solve(f, x, check_finite=False) - np.log(np.diag(f[0])).sum()
                  - 0.5 * len(x) * math.log(2 * math.pi))
 
@@ -256,14 +256,18 @@ class ChangeModel:
             logs["payload"] = -np.inf                                  # a CoM beyond any hand's reach: no payload
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
+        held = None if held is None else np.asarray(held, dtype=float)
         if held is not None:
-            logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - np.asarray(held, dtype=float), V))
+            logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
         states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
                   if np.abs(p - phi).max() > 1e-6]
-        bases = [None] if held is None else [None, np.asarray(held, dtype=float)]
-        backs = [(gaussian_log_pdf(d - Y @ (p - phi) - (0 if u is None else u), C0 + Y @ c @ Y.T), p, c, u)
-                 for p, c in states for u in bases]
+        backs = []                                                     # from the reference, and from a held wrench
+        for p, c in states:
+            Cb = C0 + Y @ c @ Y.T
+            f, e = cholesky(Cb), d - Y @ (p - phi)
+            backs += [(gaussian_log_pdf(e, Cb, f), p, c, None)]
+            backs += [] if held is None else [(gaussian_log_pdf(e - held, Cb, f), p, c, held)]
         back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None, None, None)
         logs["back"] = back[0]
         Cw = J.T @ W @ J + C0                                          # an earlier payload back under a new wrench
