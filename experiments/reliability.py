@@ -247,9 +247,10 @@ def _push_class(force, cfg: ReliabilityConfig) -> str:
 def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One push [s, e): a sample is the push's compensation if the compensated mass has moved from the one before
     the push by more than the tolerance, is off the true mass by more than the tolerance, and further off it than
-    the one before (no load change warrants it). Compensated: such a sample in [s, e + after_push); outlived: the
-    last such sample before the next change or push, less the end of the pushes acting at e (its own or a longer
-    one under which it began or ended: until then the compensation may be theirs); rise (presses alone: no other
+    the one before (no load change warrants it). Compensated: such a sample in [s, e), or in [e, e + after_push)
+    with no other push acting (a detection's lag; a push then acting owns it); outlived: the last such sample before
+    the next change or push, less the end of the pushes acting at e (its own or a longer one under which it began or
+    ended: until then the compensation may be theirs); rise (presses alone: no other
     push or change from s to the end of the release window, else None): the end effector's height above its target
     after e."""
     s, force, d = push
@@ -266,7 +267,11 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     h = m_hat[k_s:k_end]
     own = (np.abs(h - ref) > tolerance(ref, cfg)) & ~right[k_s:k_end] & (np.abs(h - m) > np.abs(ref - m))
     hit = np.flatnonzero(own)
-    during = bool(np.any(t[k_s + hit] < e + cfg.after_push)) if len(hit) else False
+    th = t[k_s + hit]
+    other = np.zeros(len(th), dtype=bool)                  # another push acting at the sample
+    for q in ep["pushes"]:
+        other |= (q is not push) & (th >= q[0]) & (th < q[0] + q[2])
+    during = bool(np.any(th < e) or np.any((th < e + cfg.after_push) & ~other))
     outlived = max(0.0, float(t[k_s + hit[-1]] + ctx["dt"] - last)) if len(hit) else 0.0
     kind, until = _push_class(force, cfg), e + cfg.release_window
     alone = not any(c["t"] >= s and c["t"] < until for c in ep["changes"]) and not any(

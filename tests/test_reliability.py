@@ -132,6 +132,12 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     assert p["pushes"][0]["rise_mm"] == pytest.approx(12.0)
     with_another = dict(changes=[], pushes=[(2.0, np.array([0.0, 1.0, -20.0]), 1.0), (3.4, np.array([0.0, 0.0, 20.0]), 0.2)])
     assert [x["rise_mm"] for x in score(press, with_another, cfg)["pushes"]] == [None, None]   # not alone; not a press
+    # a sideways push 1.0-1.5 s under a press 1.2-2.5 s, read as 1.5 kg from 1.7 s: after the sideways one's end, with
+    # the press acting, the press's; the same reading without the press: the sideways push's (a detection's lag)
+    late = _trace(4.0, [(1.7, 2.6, 1.5)])
+    side, down = (1.0, np.array([15.0, 0.0, 0.0]), 0.5), (1.2, np.array([0.0, 0.0, -20.0]), 1.3)
+    assert [x["compensated"] for x in score(late, dict(changes=[], pushes=[side, down]), cfg)["pushes"]] == [False, True]
+    assert score(late, dict(changes=[], pushes=[side]), cfg)["pushes"][0]["compensated"]
     sm = summarise([s], [p], cfg)
     assert sm["compensated"]["all"]["yes"] == 3 and sm["to_right_s"]["no_push"]["attach"]["median"] == pytest.approx(0.6)
     assert sm["ignored_load"]["over_target"] == 1 and sm["kept_after_gone"]["over_target"] == 1
