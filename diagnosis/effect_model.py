@@ -27,6 +27,10 @@ class Model:
 
     def __init__(self, robot: Robot, config: EffectConfig = EffectConfig(),
                  identify: IdentifyConfig | None = IdentifyConfig()):
+        if np.ndim(config.offset_max) and len(config.offset_max) != robot.n:     # the Panda's bounds, another arm
+            config = dataclasses.replace(config, offset_max=float(np.max(config.offset_max)),
+                                         offset_source=f"the largest of {len(config.offset_max)} joints': "
+                                                       f"{config.offset_source}")
         self.robot, self.config, self.identify = robot, config, identify
         self.library = library(config)
         self.effects, self.params, self.nl, self.fixed = [], {}, {}, set()
@@ -216,8 +220,8 @@ class Model:
                 lines.append(f"  {'':14s} not identifiable from this log, held at the nominal value: {h['directions']} "
                              f"of {h['of']} parameter directions (mainly {', '.join(h['params'])})")
             if self.violations.get(e.name):
-                asked = ", ".join(f"{k} {v:.4g}" for k, v in self.violations[e.name])
-                lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: {asked}")
+                lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: "
+                             f"{held_text(e, self.violations[e.name], self.robot.n)}")
         return "\n".join(lines)
 
     def save(self, path) -> None:
@@ -274,6 +278,19 @@ class Model:
                              "call model.fit(log) first")
 
 
+def held_text(e, violations, n: int) -> str:
+    """What the unconstrained fit asked for, each value beside the bound it was held to, and the bounds' source:
+    'tau_0 J2 -1.6 (bound -1.14), ... (bounds: SOURCE)'."""
+    lo, hi = e.bounds(n)
+    bound = {lbl: (a, b) for lbl, a, b in zip(e.labels(n), lo, hi)}
+    parts = []
+    for lbl, v in violations:
+        a, b = bound.get(lbl, (-np.inf, np.inf))
+        edge = a if v < a else b if v > b else None
+        parts.append(f"{lbl} {v:.4g}" + (f" (bound {edge:.4g})" if edge is not None and np.isfinite(edge) else ""))
+    return ", ".join(parts) + (f" (bounds: {e.source})" if e.source else "")
+
+
 FORMAT = "rme effect model"                     # the "format" field of a saved model
 
 
@@ -303,12 +320,18 @@ def _saved_robot(saved: dict, path, where: str) -> Robot:
 
 
 def _saved_config(saved: dict, where: str) -> EffectConfig:
-    """EffectConfig from its saved fields: each a finite real number or a list of them, names EffectConfig has."""
+    """EffectConfig from its saved fields: each a finite real number or a list of them (a string where EffectConfig
+    has one), names EffectConfig has."""
     names = {f.name: f for f in dataclasses.fields(EffectConfig)}
     out = {}
     for k, v in saved.items():
         if k not in names:
             raise ValueError(f"{where}config.{k}: expected one of the fields {sorted(names)}, found {k!r}")
+        if isinstance(names[k].default, str):
+            if not isinstance(v, str):
+                raise ValueError(f"{where}config.{k}: expected a string, found {v!r}")
+            out[k] = v
+            continue
         vals = v if isinstance(v, list) else [v]
         if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in vals):
             raise ValueError(f"{where}config.{k}: expected finite real numbers, found {v!r}")

@@ -9,9 +9,11 @@ import pytest
 from diagnosis import diagnose as D
 from diagnosis.anomalies import oscillation
 from diagnosis.effect_model import Model
+from diagnosis.effects import EffectConfig
 from diagnosis.excite import QUASI_STATIC, ExciteConfig
 from diagnosis.logs import prepare
 from dynamics import Robot
+from error_model import ErrorModel
 from experiments.episodes import plant_config, record_log, save_log
 
 ROBOT = Robot.panda()
@@ -87,6 +89,48 @@ def test_save_refuses_a_model_held_at_a_bound_and_force_saves_it(tmp_path, capsy
     loaded = Model.load(tmp_path / "m.json")
     np.testing.assert_allclose(loaded.params["payload"], json.loads(capsys.readouterr().out)["after"]["params"]
                                ["payload"], atol=1e-6)
+
+
+def test_each_joints_offset_bound_holds_a_fit_and_says_where_it_comes_from():
+    """Offsets of 0.3 Nm on J2 and 0.9 Nm on J6 on a slow sweep: J2 is fitted free, J6 is held to its bound (a real
+    Panda's static error there reaches 0.52 Nm), and the report says the value asked for, the bound and its source;
+    with one 1 Nm bound for every joint nothing is held."""
+    raw = sweep()
+    hidden = np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.9, 0.0])
+    log = prepare(with_torque(raw, np.broadcast_to(hidden, raw["q"].shape)))
+    model = Model.nominal(ROBOT).add("offset")
+    model.fit(log)
+    p, lo_hi = model.params["offset"], model.library["offset"].bounds(7)
+    assert abs(p[1] - 0.3) < 0.02 and p[5] == pytest.approx(lo_hi[1][5], abs=1e-6) and lo_hi[1][5] < 0.9, p
+    asked = dict(model.violations["offset"])
+    assert list(asked) == ["tau_0 J6"] and abs(asked["tau_0 J6"] - 0.9) < 0.02, asked
+    text = model.report()
+    assert f"(bound {lo_hi[1][5]:.4g})" in text and "calibrated on 36 beam logs" in text, text
+    wide = Model.nominal(ROBOT, EffectConfig(offset_max=1.0)).add("offset")
+    wide.fit(log)
+    assert not wide.violations and abs(wide.params["offset"][5] - 0.9) < 0.02, wide.params["offset"]
+
+
+@pytest.mark.slow
+def test_save_refuses_an_offset_at_its_bound_unless_the_robots_calibration_allows_it(tmp_path, capsys):
+    """The same log: `--add offset --save` is refused with the default bounds; with --calibration of a robot whose
+    J6 offset is 0.8 Nm (absolute std 0.1 Nm) the bound there is 0.8 + 3 x 0.1 = 1.1 Nm, the fit is free and saved,
+    and the JSON names the bound per joint and its source."""
+    raw = sweep()
+    hidden = np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.9, 0.0])
+    save_log(tmp_path / "off.npz", with_torque(raw, np.broadcast_to(hidden, raw["q"].shape)))
+    args = [str(tmp_path / "off.npz"), "--add", "offset", "--save", str(tmp_path / "m.json"), "--json"]
+    assert D.main(args) == 2
+    assert "tau_0 J6" in capsys.readouterr().err and not (tmp_path / "m.json").exists()
+    absolute = np.array([0.3, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1])
+    offset = np.array([0.1, -0.5, 0.0, -0.4, 0.0, 0.8, 0.0])
+    ErrorModel(tuple(absolute), (0.01,) * 7, tuple(offset), source="robot 7 on the bench").save(tmp_path / "r.json")
+    assert D.main(args + ["--calibration", str(tmp_path / "r.json")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(out["bounds"]["offset"]["bound"], np.abs(offset) + 3 * absolute, atol=1e-3)
+    assert "robot 7 on the bench" in out["bounds"]["offset"]["source"] and not out["after"]["held_to_constraints"]
+    np.testing.assert_allclose(out["after"]["params"]["offset"], hidden, atol=0.02)
+    assert Model.load(tmp_path / "m.json").config.offset_source == out["bounds"]["offset"]["source"]
 
 
 # --- what is no effect: a vibration, a step --------------------------------------------------------------------
