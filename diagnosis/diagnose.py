@@ -90,6 +90,9 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
 def calibrated_config(config: EffectConfig, error_model, robot: Robot, log: Log, every: int = 50) -> EffectConfig:
     """config with each joint's offset bound from the robot's error model at the log's poses (effects.offset_bounds;
     the gravity torque of every `every`-th sample)."""
+    if len(error_model.offset) != robot.n:
+        raise ValueError(f"--calibration: expected an error model of {robot.n} joints like the arm, found "
+                         f"{len(error_model.offset)} ({error_model.source})")
     gravity = np.array([robot.gravity(q) for q in log.q[::every]])
     bound, source = offset_bounds(error_model, gravity)
     return dataclasses.replace(config, offset_max=bound, offset_source=source)

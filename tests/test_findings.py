@@ -111,6 +111,23 @@ def test_each_joints_offset_bound_holds_a_fit_and_says_where_it_comes_from():
     assert not wide.violations and abs(wide.params["offset"][5] - 0.9) < 0.02, wide.params["offset"]
 
 
+def test_an_offset_bound_grows_where_the_log_leaves_the_calibrated_gravity_torques():
+    """offset_bounds of a calibration with a gravity range: |offset| + 3 std at a pose within it; at a pose 20 Nm
+    beyond it on J2 the std there is sqrt(std^2 + (0.05 x 20)^2) (the gravity model's share), the other joints kept."""
+    from diagnosis.effects import offset_bounds
+    absolute, offset = np.array([0.3, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1]), np.array([0.1, -0.5, 0, -0.4, 0, 0.2, 0])
+    lo, hi = np.full(7, -1.0), np.full(7, 1.0)
+    em = ErrorModel(tuple(absolute), (0.01,) * 7, tuple(offset), gravity_range=(tuple(lo), tuple(hi)))
+    inside, source = offset_bounds(em, np.zeros((3, 7)))
+    np.testing.assert_allclose(inside, np.abs(offset) + 3 * absolute, atol=1e-3)
+    beyond = np.zeros((2, 7))
+    beyond[1, 1] = 21.0
+    want = np.abs(offset) + 3 * absolute
+    want[1] = 0.5 + 3 * np.hypot(0.2, 0.05 * 20.0)
+    np.testing.assert_allclose(offset_bounds(em, beyond)[0], want, atol=1e-3)
+    assert "3 std" in source
+
+
 @pytest.mark.slow
 def test_save_refuses_an_offset_at_its_bound_unless_the_robots_calibration_allows_it(tmp_path, capsys):
     """The same log: `--add offset --save` is refused with the default bounds; with --calibration of a robot whose
@@ -131,6 +148,8 @@ def test_save_refuses_an_offset_at_its_bound_unless_the_robots_calibration_allow
     assert "robot 7 on the bench" in out["bounds"]["offset"]["source"] and not out["after"]["held_to_constraints"]
     np.testing.assert_allclose(out["after"]["params"]["offset"], hidden, atol=0.02)
     assert Model.load(tmp_path / "m.json").config.offset_source == out["bounds"]["offset"]["source"]
+    assert D.main(args + ["--calibration", str(tmp_path / "none.json")]) == 2
+    assert "none.json" in capsys.readouterr().err
 
 
 # --- what is no effect: a vibration, a step --------------------------------------------------------------------
