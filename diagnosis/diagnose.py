@@ -99,8 +99,11 @@ def calibrated_config(config: EffectConfig, error_model, robot: Robot, log: Log,
 
 
 def _save(model: Model, path: str, force: bool):
-    """model.save(path), refused (ValueError) while a parameter is held at a bound of the fit, unless force."""
+    """model.save(path), refused (ValueError) while a parameter is held at a bound of the fit (the unconstrained fit
+    asked for more, or it sits at a bound), unless force."""
     held = {e: [lbl for lbl, _ in v] for e, v in model.violations.items() if v}
+    for e, v in model.at_bounds.items():
+        held.setdefault(e, []).extend(lbl for lbl, _ in v if lbl not in held.get(e, []))
     if held and not force:
         what = "; ".join(f"{e}: {', '.join(v)}" for e, v in held.items())
         raise ValueError(f"--save: the fit holds parameters at their physical bounds ({what}); the data asked for "
@@ -155,6 +158,7 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
                        "params": {e.name: added.params[e.name] for e in added.free},
                        "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl},
                        "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()},
+                       "at_bounds": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.at_bounds.items()},
                        "not_identified": added.held}
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)

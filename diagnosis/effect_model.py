@@ -36,6 +36,7 @@ class Model:
         self.effects, self.params, self.nl, self.fixed = [], {}, {}, set()
         self.fitted, self._batch = False, None
         self.violations = {}                 # effect -> [(label, value)] the unconstrained fit asked for (last fit)
+        self.at_bounds = {}                  # effect -> [(label, value)] parameters the last fit left at a bound
         self.held = {}                       # effect -> {directions, params, info}: what the log could not identify
         #                                      (held at the nominal value; identify.py), last fit
 
@@ -53,6 +54,7 @@ class Model:
         new = copy.copy(self)
         new.effects, new.params, new.nl = list(self.effects), dict(self.params), dict(self.nl)
         new.fixed, new.violations, new.held = set(self.fixed), dict(self.violations), dict(self.held)
+        new.at_bounds = dict(self.at_bounds)
         return new
 
     def effect(self, e) -> Effect:
@@ -145,6 +147,7 @@ class Model:
         for e, p in zip(free, info.pop("params")):
             self.params[e.name] = p
         self.violations = info["violations"]
+        self.at_bounds = {e.name: v for e in free if (v := at_bounds(e, self.params[e.name], self.robot.n))}
         info["status"] = "ok" if info["rank"] == info["K"] else \
             f"rank deficient: {info['K'] - info['rank']} parameter combinations not identifiable (set to 0)"
         return info
@@ -222,6 +225,9 @@ class Model:
             if self.violations.get(e.name):
                 lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: "
                              f"{held_text(e, self.violations[e.name], self.robot.n)}")
+            if self.at_bounds.get(e.name):
+                lines.append(f"  {'':14s} at its bounds: " + ", ".join(f"{k} {v:.4g}" for k, v in self.at_bounds[e.name])
+                             + (f" (bounds: {e.source})" if e.source else ""))
         return "\n".join(lines)
 
     def save(self, path) -> None:
@@ -276,6 +282,16 @@ class Model:
         if self.free and not self.fitted:
             raise ValueError(f"model: free effects {[e.name for e in self.free]} have no fitted parameters; "
                              "call model.fit(log) first")
+
+
+def at_bounds(e, p, n: int, tol: float = 1e-6) -> list:
+    """[(label, value)] of the parameters p (size(n),) of effect e at one of its finite bounds, a bound that is not
+    the nominal value (friction, a rotor or a mass at 0 is the nominal model, not a fit held back)."""
+    lo, hi = e.bounds(n)
+    p = np.asarray(p, dtype=float)
+    near = lambda b: np.isfinite(b) & (np.abs(p - b) <= tol * (1 + np.abs(np.where(np.isfinite(b), b, 0)))) & \
+        (np.abs(b - e.nominal) > tol)
+    return [(lbl, float(v)) for lbl, v, hit in zip(e.labels(n), p, near(lo) | near(hi)) if hit]
 
 
 def held_text(e, violations, n: int) -> str:

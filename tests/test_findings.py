@@ -104,11 +104,13 @@ def test_each_joints_offset_bound_holds_a_fit_and_says_where_it_comes_from():
     assert abs(p[1] - 0.3) < 0.02 and p[5] == pytest.approx(lo_hi[1][5], abs=1e-6) and lo_hi[1][5] < 0.9, p
     asked = dict(model.violations["offset"])
     assert list(asked) == ["tau_0 J6"] and abs(asked["tau_0 J6"] - 0.9) < 0.02, asked
+    assert [lbl for lbl, _ in model.at_bounds["offset"]] == ["tau_0 J6"], model.at_bounds
     text = model.report()
     assert f"(bound {lo_hi[1][5]:.4g})" in text and "calibrated on 36 beam logs" in text, text
+    assert f"at its bounds: tau_0 J6 {lo_hi[1][5]:.4g}" in text, text
     wide = Model.nominal(ROBOT, EffectConfig(offset_max=1.0)).add("offset")
     wide.fit(log)
-    assert not wide.violations and abs(wide.params["offset"][5] - 0.9) < 0.02, wide.params["offset"]
+    assert not wide.violations and not wide.at_bounds and abs(wide.params["offset"][5] - 0.9) < 0.02, wide.params
 
 
 def test_an_offset_bound_grows_where_the_log_leaves_the_calibrated_gravity_torques():
