@@ -227,7 +227,7 @@ class Model:
                              f"{held_text(e, self.violations[e.name], self.robot.n)}")
             if self.at_bounds.get(e.name):
                 lines.append(f"  {'':14s} at its bounds: " + ", ".join(f"{k} {v:.4g}" for k, v in self.at_bounds[e.name])
-                             + (f" (bounds: {e.source})" if e.source else ""))
+                             + (f" (bounds: {e.source})" if e.source and not self.violations.get(e.name) else ""))
         return "\n".join(lines)
 
     def save(self, path) -> None:
