@@ -222,8 +222,8 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
         model, shift = consistent_offset(model, rp, np.array([data.Y[labels == i].mean(axis=0) for i in range(P)]),
                                          phi)
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
-    report = dict(offset_shift=shift.tolist(), windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
-                  load_and_offsets_separated=bool(joint), mass_std=mass_std,
+    report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
+                  offset_shift=shift.tolist(), load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
                   referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
                   shrinkage=lam, notes=notes,

@@ -226,7 +226,8 @@ class Model:
                 lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: "
                              f"{held_text(e, self.violations[e.name], self.robot.n)}")
             if self.at_bounds.get(e.name):
-                lines.append(f"  {'':14s} at its bounds: " + ", ".join(f"{k} {v:.4g}" for k, v in self.at_bounds[e.name])
+                edge = ", ".join(f"{k} {v:.4g}" for k, v in self.at_bounds[e.name])
+                lines.append(f"  {'':14s} at its bounds: {edge}"
                              + (f" (bounds: {e.source})" if e.source and not self.violations.get(e.name) else ""))
         return "\n".join(lines)
 

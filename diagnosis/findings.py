@@ -87,7 +87,8 @@ def collect(asked_by_effect: dict, selected: list, supported=None, excitation: s
     significantly better), violations [[label, unconstrained value]], source (of the bounds)}, in the order the
     effects were last tried; effects: name -> Effect (n joints), for the bounds and their source."""
     effects = effects or {}
-    return [dict(effect=e, kind="beyond bounds", joints=a["joints"], violations=[[lbl, v] for lbl, v in a["violations"]],
+    return [dict(effect=e, kind="beyond bounds", joints=a["joints"],
+                 violations=[[lbl, v] for lbl, v in a["violations"]],
                  text=describe(a, e in selected, supported, excitation, effects.get(e), n),
                  source=getattr(effects.get(e), "source", ""))
             for e, a in asked_by_effect.items()]
