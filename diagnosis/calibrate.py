@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -131,6 +131,30 @@ def gravity_range(data: RestData, labels) -> tuple | None:
     return tuple(gp.min(axis=0)), tuple(gp.max(axis=0))
 
 
+def consistent_offset(model: ErrorModel, rp, Yp, phi) -> tuple[ErrorModel, np.ndarray]:
+    """(model with its offset moved, the move (n,) [Nm]) so that the model reads its own load at its own poses: the
+    mass that generalised least squares gives from a pose's mean torque less the offset (weights: the absolute
+    error's covariance C, as RME weighs an absolute window), averaged over the poses, is the calibrated load's mass.
+    rp (P, n) the poses' mean residuals, Yp (P, n, 4) their mean regressors, phi (4,) the calibrated load.
+    The offset alone, the mean of rp, is no such offset where the poses cannot tell it from the load: subtracting
+    it moves each pose's mass by what the offset holds of that pose's load torque. The move is the least in C's
+    metric (the error the poses leave, not a new error): delta = C k e / (k^T C k), with k (n,) the averaged mass
+    row of the poses' estimators and e the mass they give less phi's. Only the mass: a CoM is seen at some poses.
+    What the estimator adds to the data's reading (its prior, the mean-field posterior) is its own, not the error
+    model's: docs/real_logs.md measures it."""
+    C = model.absolute_cov if model.correlation is not None else np.diag(np.square(model.absolute))
+    off, n = np.asarray(model.offset, dtype=float), len(model.offset)
+    K = []
+    for Y in Yp:                                                   # (n, 4) each
+        S = Y.T @ np.linalg.solve(C, np.eye(n))                    # (4, n) Y^T C^-1
+        G = S @ Y
+        K.append(np.linalg.solve(G + 1e-6 * np.trace(G) * np.eye(4), S)[0])   # the mass row; ridge: rz unseen
+    k = np.mean(K, axis=0)
+    e = float(np.mean([Ki @ (r + Y @ phi - off) for Ki, r, Y in zip(K, rp, Yp)]) - phi[0])
+    delta = C @ k * e / max(float(k @ C @ k), 1e-300)
+    return replace(model, offset=tuple(off + delta)), delta
+
+
 def referred_drift(data: RestData, r) -> np.ndarray | None:
     """(n,) [Nm] what a window referred to the window before it keeps besides the two windows' own slow parts and
     noise: sqrt(max(mean over the pairs of (r_w - r_b)^2 - level_w - level_b, 0)), r (W, n) the windows' residuals;
@@ -153,7 +177,8 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     one rest run (what a window referred to the level just before it still holds: drift, a load's vibration), and
     drift the part of it beyond the two windows' own slow parts (referred_drift: for a baseline given as a window);
     gravity_range: the lowest and highest of each joint's G_j(q) over the poses (data.gravity), beyond which the
-    absolute error is not measured (ErrorModel.absolute_cov_at)."""
+    absolute error is not measured (ErrorModel.absolute_cov_at). With load "fit", the offset is then moved the least
+    that makes the model read its own load's mass at its own poses (consistent_offset; report: offset_shift)."""
     if load not in ("none", "fit"):
         raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
     W, n = data.tau.shape
@@ -192,9 +217,13 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                        correlation=tuple(map(tuple, corr)),
                        gravity_range=gravity_range(data, labels),
                        drift=None if (drift := referred_drift(data, r)) is None else tuple(np.maximum(drift, floor)))
+    shift = np.zeros(n)
+    if load == "fit":                              # a load fitted beside the offset: the two must agree
+        model, shift = consistent_offset(model, rp, np.array([data.Y[labels == i].mean(axis=0) for i in range(P)]),
+                                         phi)
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
-                  load_and_offsets_separated=bool(joint), mass_std=mass_std,
+                  offset_shift=shift.tolist(), load_and_offsets_separated=bool(joint), mass_std=mass_std,
                   theta=np.where(np.isfinite(theta), theta, 0.0).tolist(), absolute=list(model.absolute),
                   referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
                   shrinkage=lam, notes=notes,
@@ -212,6 +241,7 @@ def format_report(rep: dict) -> str:
         lines.append(f"  the load fitted with it: m = {th[0]:.3f} kg, r = ({th[1]:+.3f}, {th[2]:+.3f}, {th[3]:+.3f}) m")
     lines += [f"  joint              " + " ".join(f"{j:>6}" for j in range(1, len(rep['offset']) + 1)),
               f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
+              f"    of it, moved      {f(rep['offset_shift'])}   (so that the model reads its load at its poses)",
               f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
               f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
     if rep.get("drift"):

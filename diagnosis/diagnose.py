@@ -4,6 +4,7 @@ nominal Eq. 1 model and the effects of effects.py; held-out forward selection). 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import os
@@ -16,7 +17,8 @@ from dynamics import Robot
 from diagnosis.anomalies import AnomalyConfig, oscillation, steps
 from diagnosis.compare import CompareConfig, Comparison, compare, fit_percent  # noqa: F401 (the package's API)
 from diagnosis.effect_model import Model
-from diagnosis.effects import EffectConfig
+from diagnosis.effects import EffectConfig, offset_bounds
+from error_model import as_error_model
 from diagnosis.forward import DiagnoseConfig, Diagnosis, diagnose, heldout_rms  # noqa: F401
 from diagnosis.logs import Log, LogConfig, load_log
 from diagnosis.figure import plot  # noqa: F401  (diagnose's figure; demos import it from here)
@@ -45,6 +47,8 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     p.add_argument("--save", metavar="MODEL.json", help="save the model after --add (Model.load reads it; "
                    "RME(correction=Model.load(path)) uses it); refused if a parameter is held at a bound")
     p.add_argument("--force", action="store_true", help="--save even a model with parameters held at their bounds")
+    p.add_argument("--calibration", metavar="ROBOT.json", help="the robot's error model (`rme.py calibrate --save`): "
+                   "each joint's offset bound from its static error at the log's poses (default: a real Panda's)")
     args = p.parse_args(argv)
     if args.log is None:
         p.error("a LOG file is needed")
@@ -65,7 +69,10 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
         if log.n != robot.n:
             raise ValueError(f"log: {log.n} joints, expected {robot.n} like the arm ({args.xml or 'the Panda'})")
         bias_map = args.bias_map or "pose_bias" in args.add
-        out = run(log, args.add, args.model, robot, EffectConfig(bias_joints=robot.n) if bias_map else EffectConfig())
+        config = EffectConfig(bias_joints=robot.n) if bias_map else EffectConfig()
+        if args.calibration:
+            config = calibrated_config(config, as_error_model(args.calibration, robot.n), robot, log)
+        out = run(log, args.add, args.model, robot, config)
         if args.save:
             _save(out["added"], args.save, args.force)
         if args.plot:
@@ -80,9 +87,23 @@ def main(argv=None, prog: str = "rme.py diagnose") -> int:
     return 0
 
 
+def calibrated_config(config: EffectConfig, error_model, robot: Robot, log: Log, every: int = 50) -> EffectConfig:
+    """config with each joint's offset bound from the robot's error model at the log's poses (effects.offset_bounds;
+    the gravity torque of every `every`-th sample)."""
+    if len(error_model.offset) != robot.n:
+        raise ValueError(f"--calibration: expected an error model of {robot.n} joints like the arm, found "
+                         f"{len(error_model.offset)} ({error_model.source})")
+    gravity = np.array([robot.gravity(q) for q in log.q[::every]])
+    bound, source = offset_bounds(error_model, gravity)
+    return dataclasses.replace(config, offset_max=bound, offset_source=source)
+
+
 def _save(model: Model, path: str, force: bool):
-    """model.save(path), refused (ValueError) while a parameter is held at a bound of the fit, unless force."""
+    """model.save(path), refused (ValueError) while a parameter is held at a bound of the fit (the unconstrained fit
+    asked for more, or it sits at a bound), unless force."""
     held = {e: [lbl for lbl, _ in v] for e, v in model.violations.items() if v}
+    for e, v in model.at_bounds.items():
+        held.setdefault(e, []).extend(lbl for lbl, _ in v if lbl not in held.get(e, []))
     if held and not force:
         what = "; ".join(f"{e}: {', '.join(v)}" for e, v in held.items())
         raise ValueError(f"--save: the fit holds parameters at their physical bounds ({what}); the data asked for "
@@ -103,6 +124,11 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
             f"{cleaning_summary(i)}; filter: {i.get('filter')}",
             f"compare: {start} model ({' + '.join(model.names)}), residual = tau_J - model = -tau_ext (paper sign)",
             format_comparison(before), "diagnose:", format_diagnosis(d)]
+    off = model.library.get("offset")
+    bounds = {} if off is None else {"offset": {"bound": off.bounds(robot.n)[1].tolist(), "source": off.source}}
+    if off is not None:
+        text.insert(2, "offset bounds [Nm]          " + " ".join(f"{x:.3f}" for x in bounds["offset"]["bound"])
+                    + f"   ({off.source})")
     js = {"log": i.get("source"), "samples": len(log), "stale_rows": i.get("stale_rows"), "nan_rows": i.get("nan_rows"),
           "bad_rows": i.get("bad_rows", 0), "gaps": i.get("gaps", 0), "missing_cycles": i.get("missing_cycles", 0),
           "longest_gap_s": i.get("longest_gap", 0.0),
@@ -112,7 +138,7 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
                        "significant": r["significant"], "rms_after": r["rms_after"], "worse_joints": r["worse"],
                        "rms_change_percent": 100 * r["rms_change"], "total_change_percent": 100 * r["total_change"]}
                       for r in d.ranking],
-          "selected": d.selected, "stop": d.stop, "findings": d.findings}
+          "selected": d.selected, "stop": d.stop, "findings": d.findings, "bounds": bounds}
     extra = log_findings(log, s, model, before, d)
     text += extra["text"]
     js.update(vibration=extra["vibration"], steps=extra["steps"], segments=extra["segments"])
@@ -132,6 +158,7 @@ def run(log: Log, add=(), start: str = "nominal", robot: Robot | None = None, co
                        "params": {e.name: added.params[e.name] for e in added.free},
                        "nonlinear": {e.name: added.nl[e.name] for e in added.free if e.name in added.nl},
                        "held_to_constraints": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.violations.items()},
+                       "at_bounds": {k: [[lbl, v] for lbl, v in vs] for k, vs in added.at_bounds.items()},
                        "not_identified": added.held}
         out.update(added=added, after=after)
     out.update(text="\n".join(text), json=js)

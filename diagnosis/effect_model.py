@@ -27,11 +27,16 @@ class Model:
 
     def __init__(self, robot: Robot, config: EffectConfig = EffectConfig(),
                  identify: IdentifyConfig | None = IdentifyConfig()):
+        if np.ndim(config.offset_max) and len(config.offset_max) != robot.n:     # the Panda's bounds, another arm
+            config = dataclasses.replace(config, offset_max=float(np.max(config.offset_max)),
+                                         offset_source=f"the largest of {len(config.offset_max)} joints': "
+                                                       f"{config.offset_source}")
         self.robot, self.config, self.identify = robot, config, identify
         self.library = library(config)
         self.effects, self.params, self.nl, self.fixed = [], {}, {}, set()
         self.fitted, self._batch = False, None
         self.violations = {}                 # effect -> [(label, value)] the unconstrained fit asked for (last fit)
+        self.at_bounds = {}                  # effect -> [(label, value)] parameters the last fit left at a bound
         self.held = {}                       # effect -> {directions, params, info}: what the log could not identify
         #                                      (held at the nominal value; identify.py), last fit
 
@@ -49,6 +54,7 @@ class Model:
         new = copy.copy(self)
         new.effects, new.params, new.nl = list(self.effects), dict(self.params), dict(self.nl)
         new.fixed, new.violations, new.held = set(self.fixed), dict(self.violations), dict(self.held)
+        new.at_bounds = dict(self.at_bounds)
         return new
 
     def effect(self, e) -> Effect:
@@ -141,6 +147,7 @@ class Model:
         for e, p in zip(free, info.pop("params")):
             self.params[e.name] = p
         self.violations = info["violations"]
+        self.at_bounds = {e.name: v for e in free if (v := at_bounds(e, self.params[e.name], self.robot.n))}
         info["status"] = "ok" if info["rank"] == info["K"] else \
             f"rank deficient: {info['K'] - info['rank']} parameter combinations not identifiable (set to 0)"
         return info
@@ -216,8 +223,12 @@ class Model:
                 lines.append(f"  {'':14s} not identifiable from this log, held at the nominal value: {h['directions']} "
                              f"of {h['of']} parameter directions (mainly {', '.join(h['params'])})")
             if self.violations.get(e.name):
-                asked = ", ".join(f"{k} {v:.4g}" for k, v in self.violations[e.name])
-                lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: {asked}")
+                lines.append(f"  {'':14s} held to its physical constraints; unconstrained it asked for: "
+                             f"{held_text(e, self.violations[e.name], self.robot.n)}")
+            if self.at_bounds.get(e.name):
+                edge = ", ".join(f"{k} {v:.4g}" for k, v in self.at_bounds[e.name])
+                lines.append(f"  {'':14s} at its bounds: {edge}"
+                             + (f" (bounds: {e.source})" if e.source and not self.violations.get(e.name) else ""))
         return "\n".join(lines)
 
     def save(self, path) -> None:
@@ -274,6 +285,29 @@ class Model:
                              "call model.fit(log) first")
 
 
+def at_bounds(e, p, n: int, tol: float = 1e-6) -> list:
+    """[(label, value)] of the parameters p (size(n),) of effect e at one of its finite bounds, a bound that is not
+    the nominal value (friction, a rotor or a mass at 0 is the nominal model, not a fit held back)."""
+    lo, hi = e.bounds(n)
+    p = np.asarray(p, dtype=float)
+    near = lambda b: np.isfinite(b) & (np.abs(p - b) <= tol * (1 + np.abs(np.where(np.isfinite(b), b, 0)))) & \
+        (np.abs(b - e.nominal) > tol)
+    return [(lbl, float(v)) for lbl, v, hit in zip(e.labels(n), p, near(lo) | near(hi)) if hit]
+
+
+def held_text(e, violations, n: int) -> str:
+    """What the unconstrained fit asked for, each value beside the bound it was held to, and the bounds' source:
+    'tau_0 J2 -1.6 (bound -1.14), ... (bounds: SOURCE)'."""
+    lo, hi = e.bounds(n)
+    bound = {lbl: (a, b) for lbl, a, b in zip(e.labels(n), lo, hi)}
+    parts = []
+    for lbl, v in violations:
+        a, b = bound.get(lbl, (-np.inf, np.inf))
+        edge = a if v < a else b if v > b else None
+        parts.append(f"{lbl} {v:.4g}" + (f" (bound {edge:.4g})" if edge is not None and np.isfinite(edge) else ""))
+    return ", ".join(parts) + (f" (bounds: {e.source})" if e.source else "")
+
+
 FORMAT = "rme effect model"                     # the "format" field of a saved model
 
 
@@ -303,12 +337,18 @@ def _saved_robot(saved: dict, path, where: str) -> Robot:
 
 
 def _saved_config(saved: dict, where: str) -> EffectConfig:
-    """EffectConfig from its saved fields: each a finite real number or a list of them, names EffectConfig has."""
+    """EffectConfig from its saved fields: each a finite real number or a list of them (a string where EffectConfig
+    has one), names EffectConfig has."""
     names = {f.name: f for f in dataclasses.fields(EffectConfig)}
     out = {}
     for k, v in saved.items():
         if k not in names:
             raise ValueError(f"{where}config.{k}: expected one of the fields {sorted(names)}, found {k!r}")
+        if isinstance(names[k].default, str):
+            if not isinstance(v, str):
+                raise ValueError(f"{where}config.{k}: expected a string, found {v!r}")
+            out[k] = v
+            continue
         vals = v if isinstance(v, list) else [v]
         if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in vals):
             raise ValueError(f"{where}config.{k}: expected finite real numbers, found {v!r}")

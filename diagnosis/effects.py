@@ -16,6 +16,28 @@ from diagnosis.physical import KINDS, Segment, tilt_columns
 from dynamics import Robot
 
 
+# A Panda's static torque error at a pose, per joint, measured: `python rme.py calibrate` on 36 real logs of a Panda
+# holding a beam at 6 poses (docs/real_logs.md, load fitted): offset 0.117, -0.832, -0.324, -0.780, 0.100, -0.244,
+# -0.070 Nm and absolute std 0.226, 0.103, 0.168, 0.130, 0.190, 0.092, 0.203 Nm; the bound is |offset| + 3 std
+# (offset_bounds). Franka's own figure, "a few tenths, up to about 1 Nm on J1-J4" (panda_facts.md), agrees.
+PANDA_OFFSET_MAX = (0.80, 1.14, 0.83, 1.17, 0.67, 0.52, 0.68)
+PANDA_OFFSET_SOURCE = ("|offset| + 3 std of a real Panda's static error at a pose, calibrated on 36 beam logs "
+                       "(docs/real_logs.md)")
+BOUND_SIGMAS = 3.0          # stds of a pose's static error the offset bound allows (0.3 % of poses beyond, Gaussian)
+
+
+def offset_bounds(error_model, gravity=None) -> tuple[tuple, str]:
+    """(bound (n,) [Nm], source) of |tau_0| per joint from an error_model.ErrorModel (a calibration of this robot):
+    |offset_j| + BOUND_SIGMAS sqrt(C_jj), C the absolute error's covariance at the log's poses (gravity (P, n): their
+    gravity torques; beyond the calibrated range it grows, ErrorModel.absolute_cov_at), the largest over them."""
+    poses = [None] if gravity is None else np.atleast_2d(gravity)
+    stds = lambda C: np.sqrt(np.diag(C)) if C.ndim == 2 else C    # absolute_cov_at: (n, n) or stds (n,)
+    std = np.max([stds(np.asarray(error_model.absolute_cov_at(g))) for g in poses], axis=0)
+    bound = np.abs(np.asarray(error_model.offset)) + BOUND_SIGMAS * std
+    return tuple(float(x) for x in np.round(bound, 3)), (f"|offset| + {BOUND_SIGMAS:g} std of the static error at a "
+                                                         f"pose, {error_model.source}")
+
+
 @dataclass(frozen=True)
 class EffectConfig:
     """Shape constants and bounds of the library's nonlinear terms."""
@@ -29,11 +51,9 @@ class EffectConfig:
     max_mass: float = 4.0                    # kg, payload mass bound: the Panda's rated 3 kg (datasheet) + 1 kg margin
     max_com: float = 0.3                     # m, payload CoM distance bound |r| from the ee origin: within reach of
     #                                          the hand (a tool or a held object; a CoM metres away is not a load)
-    offset_max: float = 1.0                  # Nm, |tau_0| bound: the load-free torque offset of a Panda is a few
-    #                                          tenths, up to about 1 Nm on J1-J4 (panda_facts.md; Gaz fo <= 0.25 Nm);
-    #                                          J5-J7: no published figure; on a real Panda's 36 beam logs
-    #                                          (docs/real_logs.md, 6 poses, load fitted) the static error of a
-    #                                          pose is at most 0.28, 0.38, 0.29 Nm (J1-J4: 0.44-0.99), within it
+    offset_max: float | tuple = PANDA_OFFSET_MAX   # Nm, |tau_0 J_j| bound per joint (one number: every joint):
+    #                                          what a torque sensor's static error reaches (offset_bounds)
+    offset_source: str = PANDA_OFFSET_SOURCE  # where offset_max comes from (said beside a fit held to it)
     scale_max: float = 2.0                   # upper bound of k_G, k_M: a model off by 2x is another arm
     friction_factor: float = 10.0            # friction, rotor bounds: this many times the largest value Gaz et al.
     #                                          2019 identified on a Panda (fv 0.23, fc 0.36, p1 1.28) or the
@@ -138,7 +158,8 @@ class Effect:
     payload: part of the load rather than of the robot (reported as theta = (m, r) when possible).
     smooth: filter the block like the log's torques (needed for sharp regressors such as Coulomb friction; the
     library's smooth effects skip it, since their content lies inside the filter's pass band anyway).
-    lower, upper: physical bounds per parameter name (repeated per joint for a per-joint effect; None = unbounded).
+    lower, upper: physical bounds per parameter name (repeated per joint for a per-joint effect, or one per joint
+    there; None = unbounded); source: where they come from.
     scale: each parameter's plausible size (a change the log must be able to see; identify.py), None = unknown.
     nl_bounds: (lower (k,), upper (k,)) of the nonlinear parameters, what their fits keep to.
     physical: a named constraint of physical.KINDS: "rigid_body" (10 parameters with a positive semidefinite
@@ -164,6 +185,7 @@ class Effect:
     radius: float = np.inf
     scale: tuple | None = None
     nl_bounds: tuple | None = None
+    source: str = ""                       # where lower/upper come from, said beside a fit held to them
 
     def __post_init__(self):
         for name in ("lower", "upper", "scale"):
@@ -223,9 +245,17 @@ class Effect:
     def bounds(self, n: int):
         """(lower, upper) (size(n),) of the parameters, +-inf where unbounded."""
         k = n if self.per_joint else 1
-        lo = np.repeat(np.asarray(self.lower if self.lower is not None else [-np.inf] * len(self.params), float), k)
-        hi = np.repeat(np.asarray(self.upper if self.upper is not None else [np.inf] * len(self.params), float), k)
-        return lo, hi
+
+        def each(values, fill):
+            out = []
+            for name, v in zip(self.params, values if values is not None else [fill] * len(self.params)):
+                v = np.asarray(v, float)
+                if v.ndim and v.shape != (k,):
+                    raise ValueError(f"{self.name}: expected one bound of {name} or one per joint ({k}), found "
+                                     f"{v.size}")
+                out.append(np.broadcast_to(v, (k,)))
+            return np.concatenate(out)
+        return each(self.lower, -np.inf), each(self.upper, np.inf)
 
     def labels(self, n: int) -> tuple:
         """A name per parameter: 'I_a J2' for a per-joint effect, else the parameter's name."""
@@ -327,6 +357,9 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
     c = config
     body = ("m", "m_cx", "m_cy", "m_cz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
     inf, k = np.inf, c.friction_factor
+    om = tuple(map(float, c.offset_max)) if np.ndim(c.offset_max) else float(c.offset_max)
+    size = 1.0                               # Nm, an offset's plausible size (identify.py): "up to about 1 Nm"
+    #                                          (panda_facts.md)
     load = dict(payload=True, smooth=False, radius=c.max_com)
     rated = 3.0                              # kg, the Panda's rated payload (datasheet): a load's plausible size
     effects = [
@@ -361,7 +394,8 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
                                                                 c.sigmoid_rows)),
         Effect("offset", "a constant bias of each joint torque sensor (calibration drift)",
                lambda s: np.ones_like(s.q), ("tau_0",), ("Nm",), per_joint=True, signal="t", smooth=False,
-               lower=(-c.offset_max,), upper=(c.offset_max,), scale=(c.offset_max,)),
+               lower=(tuple(-np.asarray(om)) if np.ndim(om) else -om,), upper=(om,), scale=(size,),
+               source=c.offset_source),
         Effect("rotor", "the motor rotor's inertia seen through the gearbox, I_a ddq, missing from a link-only model",
                lambda s: s.ddq, ("I_a",), ("kg m^2",), per_joint=True, signal="ddq", smooth=False, lower=(0.0,),
                upper=(k * 0.05,), scale=(0.05,)),
@@ -375,7 +409,7 @@ def library(config: EffectConfig = EffectConfig()) -> dict:
                "sin q_k, cos q_k of every joint", lambda s: pose_bias_block(s.q, c.bias_joints),
                ("b",) + tuple(f"{f} q{k + 1}" for f in ("sin", "cos") for k in range(c.bias_joints)),
                ("Nm",) * (1 + 2 * c.bias_joints), per_joint=True, signal="q", smooth=False,
-               scale=(c.offset_max,) * (1 + 2 * c.bias_joints)),
+               scale=(size,) * (1 + 2 * c.bias_joints)),
     ][:1 if c.bias_joints > 0 else 0]
     return {e.name: e for e in effects}
 

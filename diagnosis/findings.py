@@ -16,7 +16,7 @@ HINTS = {
                 "friction; check the sign of the logged torques"),
     "payload": ("a negative payload mass", "the nominal masses of the wrist or hand may be too large; try scaling "
                 "`gravity`"),
-    "offset": ("offsets larger than a Panda's torque sensor drifts (|tau_0| <= 1 Nm)", "a static torque this large "
+    "offset": ("offsets larger than the robot's static error at a pose reaches", "a static torque this large "
                "is a load or an error of the nominal model, not a sensor offset"),
     "rigid_payload": ("a non-physical rigid payload", "the nominal inertias of the wrist or hand may be off; try "
                       "scaling `motion`, or the static `payload`"),
@@ -49,10 +49,11 @@ def _support(cause: str, supported, excitation: str) -> str:
     return cause
 
 
-def describe(asked: dict, selected: bool, supported=None, excitation: str = "") -> str:
+def describe(asked: dict, selected: bool, supported=None, excitation: str = "", effect=None, n: int = 7) -> str:
     """One sentence for a finding {effect, violations [(label, value)], joints}: what the fit without the effect's
     constraints asked for (on which joints), the likely cause, and what became of the effect. supported: the effects
-    the log could identify (advice to scale another is left out)."""
+    the log could identify (advice to scale another is left out). effect: the Effect (of n joints), whose bounds and
+    their source are said beside per-joint values."""
     e = asked["effect"]
     viol = asked["violations"]
     negative = any(lbl == "m" and v < 0 for lbl, v in viol)                   # a negative mass says the most
@@ -68,18 +69,28 @@ def describe(asked: dict, selected: bool, supported=None, excitation: str = "") 
         per_joint = [(name, j, v) for (name, j), v in ((_joint(lbl), v) for lbl, v in viol) if j is not None]
         if per_joint and len(per_joint) == len(viol):
             values = f"{per_joint[0][0]} = " + ", ".join(f"{v:.3g}" for _, _, v in per_joint)
-            where = " on " + ", ".join(f"J{j}" for _, j, _ in per_joint) + f" (unconstrained {values})"
+            where = " on " + ", ".join(f"J{j}" for _, j, _ in per_joint) + f" (unconstrained {values}"
+            if effect is not None and effect.source:
+                lo, hi = (b.reshape(-1, n)[0] for b in effect.bounds(n))   # the first parameter's, per joint
+                edges = [lo[j - 1] if v < lo[j - 1] else hi[j - 1] for _, j, v in per_joint]
+                where += "; bounds " + ", ".join(f"{x:.3g}" for x in edges) + f" ({effect.source})"
+            where += ")"
         else:
             where = " (unconstrained " + ", ".join(f"{lbl} = {v:.3g}" for lbl, v in viol) + ")"
     fate = "selected with its parameters held to the bounds" if selected else "not selected"
     return f"the data ask for {what}{where}: {_support(cause, supported, excitation)}; {e} {fate}"
 
 
-def collect(asked_by_effect: dict, selected: list, supported=None, excitation: str = "") -> list:
+def collect(asked_by_effect: dict, selected: list, supported=None, excitation: str = "", effects=None,
+            n: int = 7) -> list:
     """The findings as JSON-ready dicts {effect, kind, text, joints (where the fit without the constraints is
-    significantly better), violations [[label, unconstrained value]]}, in the order the effects were last tried."""
-    return [dict(effect=e, kind="beyond bounds", text=describe(a, e in selected, supported, excitation),
-                 joints=a["joints"], violations=[[lbl, v] for lbl, v in a["violations"]])
+    significantly better), violations [[label, unconstrained value]], source (of the bounds)}, in the order the
+    effects were last tried; effects: name -> Effect (n joints), for the bounds and their source."""
+    effects = effects or {}
+    return [dict(effect=e, kind="beyond bounds", joints=a["joints"],
+                 violations=[[lbl, v] for lbl, v in a["violations"]],
+                 text=describe(a, e in selected, supported, excitation, effects.get(e), n),
+                 source=getattr(effects.get(e), "source", ""))
             for e, a in asked_by_effect.items()]
 
 

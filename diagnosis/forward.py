@@ -86,7 +86,8 @@ def diagnose(model: Model, log, candidates=None, config: DiagnoseConfig = Diagno
     selected = [st["effect"] for st in steps]
     supported = {n for n in ("motion", "gravity") if n not in final.names
                  and sep.dims(model.effect(n), list(final.free)) != 0}
-    findings = notes + collect(asked, selected, supported, describe_excitation(sep.excitation))
+    findings = notes + collect(asked, selected, supported, describe_excitation(sep.excitation),
+                               {c.name: c for c in cands}, s.n)
     return Diagnosis(rms0, ranking, steps, selected, final, stop, len(s),
                      {"blocks": int(block.max() + 1), "block_s": config.block, "excitation": sep.excitation},
                      findings)

@@ -380,3 +380,29 @@ def test_a_baseline_window_lets_the_interval_follow_the_swing():
     quiet = np.argsort(amp)[:27]
     ratio = np.median(np.array(sig)[quiet]) / np.median(np.array(sig_mean)[quiet])
     assert 0.88 <= np.mean(hits) <= 1.0 and ratio < 0.85, (np.mean(hits), ratio)
+
+
+def test_a_calibration_with_its_load_fitted_reads_that_load_at_its_own_poses():
+    """Rest windows of a 0.6 kg load at 6 random poses whose errors, correlated across joints, share a mean: calibrated
+    with the load fitted, RME on those same windows (absolute, as samples) reads the calibrated mass within 3 % in
+    the mean over windows, on each of 6 fresh robots (what is left: the mean-field posterior reads 1-2 % light at
+    this sigma, docs/real_logs.md). The poses' mean error alone as the offset misreads it by up to 5 % where the
+    poses cannot tell the offset from the load: each pose's mass moves by what the offset holds of its load torque."""
+    rng = np.random.default_rng(31)
+    theta = np.array([0.6, 0.03, -0.04, 0.08])
+    for _ in range(6):
+        L = rng.normal(size=(7, 7)) * np.array([0.2, 0.15, 0.15, 0.15, 0.1, 0.08, 0.08])[:, None]
+        chol = np.linalg.cholesky(L @ L.T / 7 + np.diag(np.full(7, 0.01 ** 2)))
+        windows, q, tau, Y, before = [], [], [], [], []
+        for p in range(6):
+            pose, b = random_pose(ROBOT, rng), OFFSET + chol @ rng.standard_normal(7)
+            for k in range(4):
+                w = _window(rng, pose, theta, b + REF / 2 * rng.standard_normal(7))
+                windows.append(w)
+                q.append(w[0].mean(axis=0)), tau.append(w[1].mean(axis=0))
+                Y.append(ROBOT.payload_regressor(w[0]).mean(axis=0)), before.append(len(q) - 2 if k else -1)
+        data = RestData(np.array(q), np.array(tau), np.array(Y), np.array(before), np.zeros((len(q), 3), int), [None])
+        model, rep = calibrate(data, "fit")
+        est = RME(rng=np.random.default_rng(0), calibration=model)
+        m = np.mean([est.estimate(*w).mean[0] for w in windows])
+        assert abs(m / rep["theta"][0] - 1) < 0.03, (m, rep["theta"][0], rep["offset_shift"])

@@ -9,9 +9,11 @@ import pytest
 from diagnosis import diagnose as D
 from diagnosis.anomalies import oscillation
 from diagnosis.effect_model import Model
+from diagnosis.effects import EffectConfig
 from diagnosis.excite import QUASI_STATIC, ExciteConfig
 from diagnosis.logs import prepare
 from dynamics import Robot
+from error_model import ErrorModel
 from experiments.episodes import plant_config, record_log, save_log
 
 ROBOT = Robot.panda()
@@ -87,6 +89,69 @@ def test_save_refuses_a_model_held_at_a_bound_and_force_saves_it(tmp_path, capsy
     loaded = Model.load(tmp_path / "m.json")
     np.testing.assert_allclose(loaded.params["payload"], json.loads(capsys.readouterr().out)["after"]["params"]
                                ["payload"], atol=1e-6)
+
+
+def test_each_joints_offset_bound_holds_a_fit_and_says_where_it_comes_from():
+    """Offsets of 0.3 Nm on J2 and 0.9 Nm on J6 on a slow sweep: J2 is fitted free, J6 is held to its bound (a real
+    Panda's static error there reaches 0.52 Nm), and the report says the value asked for, the bound and its source;
+    with one 1 Nm bound for every joint nothing is held."""
+    raw = sweep()
+    hidden = np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.9, 0.0])
+    log = prepare(with_torque(raw, np.broadcast_to(hidden, raw["q"].shape)))
+    model = Model.nominal(ROBOT).add("offset")
+    model.fit(log)
+    p, lo_hi = model.params["offset"], model.library["offset"].bounds(7)
+    assert abs(p[1] - 0.3) < 0.02 and p[5] == pytest.approx(lo_hi[1][5], abs=1e-6) and lo_hi[1][5] < 0.9, p
+    asked = dict(model.violations["offset"])
+    assert list(asked) == ["tau_0 J6"] and abs(asked["tau_0 J6"] - 0.9) < 0.02, asked
+    assert [lbl for lbl, _ in model.at_bounds["offset"]] == ["tau_0 J6"], model.at_bounds
+    text = model.report()
+    assert f"(bound {lo_hi[1][5]:.4g})" in text and "calibrated on 36 beam logs" in text, text
+    assert f"at its bounds: tau_0 J6 {lo_hi[1][5]:.4g}" in text, text
+    wide = Model.nominal(ROBOT, EffectConfig(offset_max=1.0)).add("offset")
+    wide.fit(log)
+    assert not wide.violations and not wide.at_bounds and abs(wide.params["offset"][5] - 0.9) < 0.02, wide.params
+
+
+def test_an_offset_bound_grows_where_the_log_leaves_the_calibrated_gravity_torques():
+    """offset_bounds of a calibration with a gravity range: |offset| + 3 std at a pose within it; at a pose 20 Nm
+    beyond it on J2 the std there is sqrt(std^2 + (0.05 x 20)^2) (the gravity model's share), the other joints kept."""
+    from diagnosis.effects import offset_bounds
+    absolute, offset = np.array([0.3, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1]), np.array([0.1, -0.5, 0, -0.4, 0, 0.2, 0])
+    lo, hi = np.full(7, -1.0), np.full(7, 1.0)
+    em = ErrorModel(tuple(absolute), (0.01,) * 7, tuple(offset), gravity_range=(tuple(lo), tuple(hi)))
+    inside, source = offset_bounds(em, np.zeros((3, 7)))
+    np.testing.assert_allclose(inside, np.abs(offset) + 3 * absolute, atol=1e-3)
+    beyond = np.zeros((2, 7))
+    beyond[1, 1] = 21.0
+    want = np.abs(offset) + 3 * absolute
+    want[1] = 0.5 + 3 * np.hypot(0.2, 0.05 * 20.0)
+    np.testing.assert_allclose(offset_bounds(em, beyond)[0], want, atol=1e-3)
+    assert "3 std" in source
+
+
+@pytest.mark.slow
+def test_save_refuses_an_offset_at_its_bound_unless_the_robots_calibration_allows_it(tmp_path, capsys):
+    """The same log: `--add offset --save` is refused with the default bounds; with --calibration of a robot whose
+    J6 offset is 0.8 Nm (absolute std 0.1 Nm) the bound there is 0.8 + 3 x 0.1 = 1.1 Nm, the fit is free and saved,
+    and the JSON names the bound per joint and its source."""
+    raw = sweep()
+    hidden = np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.9, 0.0])
+    save_log(tmp_path / "off.npz", with_torque(raw, np.broadcast_to(hidden, raw["q"].shape)))
+    args = [str(tmp_path / "off.npz"), "--add", "offset", "--save", str(tmp_path / "m.json"), "--json"]
+    assert D.main(args) == 2
+    assert "tau_0 J6" in capsys.readouterr().err and not (tmp_path / "m.json").exists()
+    absolute = np.array([0.3, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1])
+    offset = np.array([0.1, -0.5, 0.0, -0.4, 0.0, 0.8, 0.0])
+    ErrorModel(tuple(absolute), (0.01,) * 7, tuple(offset), source="robot 7 on the bench").save(tmp_path / "r.json")
+    assert D.main(args + ["--calibration", str(tmp_path / "r.json")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(out["bounds"]["offset"]["bound"], np.abs(offset) + 3 * absolute, atol=1e-3)
+    assert "robot 7 on the bench" in out["bounds"]["offset"]["source"] and not out["after"]["held_to_constraints"]
+    np.testing.assert_allclose(out["after"]["params"]["offset"], hidden, atol=0.02)
+    assert Model.load(tmp_path / "m.json").config.offset_source == out["bounds"]["offset"]["source"]
+    assert D.main(args + ["--calibration", str(tmp_path / "none.json")]) == 2
+    assert "none.json" in capsys.readouterr().err
 
 
 # --- what is no effect: a vibration, a step --------------------------------------------------------------------

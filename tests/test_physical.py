@@ -9,7 +9,7 @@ from scipy.optimize import lsq_linear, minimize
 
 from diagnosis import diagnose as D
 from diagnosis.effect_model import Model
-from diagnosis.effects import Signals, custom
+from diagnosis.effects import EffectConfig, Signals, custom
 from diagnosis.excite import GAZ_FC, ExciteConfig, multisine
 from diagnosis.heldout import BlockGrams, blocks_of
 from diagnosis.logs import Log, prepare
@@ -214,7 +214,7 @@ def test_bounded_offsets_and_a_payload_cone_far_from_the_data_match_a_reference_
     and the 0.3 m cone and is no worse than scipy's trust-constr on the same convex problem (fresh seeded draws)."""
     from scipy.optimize import Bounds, NonlinearConstraint
     from diagnosis.effects import segments
-    lib = Model(ROBOT).library
+    lib = Model(ROBOT, EffectConfig(offset_max=1.0)).library
     segs = segments([lib["offset"], lib["payload"]], 7, ROBOT.g)
     for seed in range(2):
         rng = np.random.default_rng(seed)
