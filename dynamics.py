@@ -347,6 +347,35 @@ class Robot:
         Y[:, :, 1:] = -J[:, 3:].transpose(0, 2, 1) @ (self._g_skew @ R)
         return Y
 
+    def link_bodies(self) -> tuple:
+        """Names of the bodies that carry a joint, base to tip, except the last: the links whose inertial parameters
+        a load on the flange cannot stand for (the last link's gravity regressor is the payload's)."""
+        m = self.model
+        bodies = [int(m.jnt_bodyid[j]) for j in range(m.njnt)]
+        return tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in bodies[:-1])
+
+    def link_gravity_regressor(self, q, bodies):
+        """A (n, 4 L) with tau = A dpi the gravity torque of the links named in bodies (L of them), dpi = per link
+        (m, m cx, m cy, m cz), c the CoM in the link's body frame; paper sign, as payload_regressor (the same form
+        at each link's frame origin: [Jv^T g, -Jw^T [g]x R]). q (n,), the pose (a window's mean)."""
+        q, _ = as_states("q", q, self.n, allow_window=False)
+        m, d = self.model, self.data
+        self._kin(q[0])
+        A, J = np.empty((self.n, 4 * len(bodies))), np.empty((6, self.n))
+        for i, name in enumerate(bodies):
+            b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
+            if b < 0:
+                raise ValueError(f"bodies: no body named {name!r} in the model")
+            mujoco.mj_jacBody(m, d, J[:3], J[3:], b)
+            A[:, 4 * i:4 * i + 4] = self.payload_regressor_from(J, d.xmat[b].reshape(3, 3))
+        return A
+
+    def link_parameters(self, bodies) -> np.ndarray:
+        """pi (4 L,) the model's own (m, m cx, m cy, m cz) of the links named in bodies (link_gravity_regressor)."""
+        m = self.model
+        ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name) for name in bodies]
+        return np.concatenate([[m.body_mass[b], *(m.body_mass[b] * m.body_ipos[b])] for b in ids])
+
     def payload_torque(self, q, theta):
         """tau_mm (n,) / (T, n) for theta = (m, rx, ry, rz) (kg, m in the ee frame)."""
         theta, _ = as_states("theta", theta, 4, allow_window=False)

@@ -41,6 +41,10 @@ class ErrorModel:
     gravity_share: float = GRAVITY_SHARE   # std of the model's error per Nm of G_j beyond that range
     drift: tuple | None = None   # (n,) [Nm] what a window referred to a baseline window keeps besides the two
                                  #   windows' own slow parts (vi.level_variance); None: referred
+    links: tuple | None = None   # (L,) names of the links whose inertial errors dpi (4 L,), per link (m, m cx, m cy,
+                                 #   m cz) [kg, kg m], the absolute error holds (pose_error_at); None: the
+                                 #   pose-dependent error is absolute and correlation
+    link_cov: tuple | None = None    # (n + 4 L, n + 4 L) the covariance of (c, dpi), c the error the offset leaves
 
     def __post_init__(self):
         n = None
@@ -75,6 +79,8 @@ class ErrorModel:
             if a is None or a.shape != (n,) or not np.all(np.isfinite(a)) or not np.all((a > 0) & (a <= 20.0)):
                 raise ValueError(f"error_model.drift: expected {n} stds in (0, 20] Nm, found {self.drift!r:.80}")
             object.__setattr__(self, "drift", tuple(float(x) for x in a))
+        if self.links is not None:
+            self._check_links(n)
         object.__setattr__(self, "gravity_share", checks.number("error_model.gravity_share", self.gravity_share,
                                                                 "[0, 1]", "(Nm per Nm of gravity torque)"))
         if not isinstance(self.source, str):
@@ -100,6 +106,28 @@ class ErrorModel:
         extra = (self.gravity_share * np.maximum(np.maximum(lo - g, g - hi), 0.0)) ** 2      # (n,)
         return np.sqrt(C**2 + extra) if C.ndim == 1 else C + np.diag(extra)
 
+    def _check_links(self, n):
+        names = self.links
+        if not isinstance(names, (tuple, list)) or not names or not all(isinstance(x, str) for x in names):
+            raise ValueError(f"error_model.links: expected link (body) names, found {names!r:.80}")
+        k = 4 * len(names)
+        S = checks.real_array(self.link_cov)
+        if S is None or S.shape != (n + k, n + k) or not np.all(np.isfinite(S)) or not np.allclose(S, S.T) or \
+                np.linalg.eigvalsh(S)[0] < -1e-9 * max(np.abs(S).max(), 1e-300):
+            raise ValueError(f"error_model.link_cov: expected a ({n + k}, {n + k}) covariance (symmetric, positive "
+                             f"semidefinite), found {self.link_cov!r:.80}")
+        object.__setattr__(self, "links", tuple(names))
+        object.__setattr__(self, "link_cov", tuple(tuple(float(x) for x in row) for row in S))
+
+    def pose_error_at(self, A):
+        """(mean (n,), covariance (n, n)) [Nm, Nm^2] of an absolute window's constant error at a pose whose links'
+        gravity regressor is A (n, 4 L) (dynamics.Robot.link_gravity_regressor of self.links): b = offset + H (c, dpi)
+        + u with H = [I, A], so mean offset and covariance H link_cov H^T + diag(absolute^2), u the per-joint part
+        no link error explains. The links' errors act through the robot's own gravity regressor: the model carries
+        to a pose the calibration has not seen as far as the link model is right."""
+        H = np.hstack([np.eye(len(self.offset)), np.asarray(A, dtype=float)])
+        return np.asarray(self.offset), H @ np.asarray(self.link_cov) @ H.T + np.diag(np.square(self.absolute))
+
     def save(self, path) -> None:
         """Write the model as JSON (rme.py calibrate --save)."""
         with open(path, "w") as f:
@@ -122,7 +150,7 @@ class ErrorModel:
             raise ValueError(f"error_model: {path!r} lacks {sorted(missing)}")
         return cls(data["absolute"], data["referred"], data["offset"], str(data.get("source", path)),
                    data.get("correlation"), data.get("gravity_range"), data.get("gravity_share", GRAVITY_SHARE),
-                   data.get("drift"))
+                   data.get("drift"), data.get("links"), data.get("link_cov"))
 
 
 def as_error_model(x, n: int = N) -> ErrorModel:

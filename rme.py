@@ -175,6 +175,15 @@ class RME:
         return self._estimate([w[0] for w in windows], [w[1] for w in windows],
                               referred=[ref(b) for b in each(baseline)], level=[w[2] for w in windows])[0]
 
+    def _absolute_error(self, q):
+        """(mean (n,), covariance (n, n) or stds (n,)) [Nm] of an absolute window's constant error at the window q's
+        (T, n) mean pose: from the calibrated links' errors (ErrorModel.pose_error_at) when the model has them, else
+        the offset and the absolute error at the pose's own gravity torque (ErrorModel.absolute_cov_at)."""
+        em, qm = self.error_model, np.mean(q, axis=0)
+        if em.links is not None:
+            return em.pose_error_at(self.robot.link_gravity_regressor(qm, em.links))
+        return np.asarray(em.offset), em.absolute_cov_at(self.robot.gravity(qm))
+
     def _window(self, q, tau_ext, baseline, dq, referred):
         """A checked (q, tau) (T, n) window, less the baseline (its mean, for a window) and the correction; and
         level (n,) [Nm^2] what a baseline window's mean holds of its own slow part and noise (vi.level_variance;
@@ -193,7 +202,7 @@ class RME:
             tau = tau - base.mean(axis=0)
             level = vi.level_variance(base, self.settings.vi) if window else None
         if not referred:                                             # an absolute window: the calibrated mean
-            tau = tau - np.asarray(self.error_model.offset)          #   model error, and the known tool's weight
+            tau = tau - self._absolute_error(q)[0]                   #   model error, and the known tool's weight
             if self.tool is not None:
                 tau = tau - self.robot.payload_regressor(q) @ self._tool_phi
         if self.correction is not None:
@@ -232,7 +241,7 @@ class RME:
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
         speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
         em, s = self.error_model, self.settings
-        absolute = lambda qi: em.absolute_cov_at(self.robot.gravity(qi.mean(axis=0)))   # the pose's own G(q)
+        absolute = lambda qi: self._absolute_error(qi)[1]                                 # at the pose
         relative = lambda lv: em.referred if lv is None or em.drift is None else np.sqrt(np.square(em.drift) + lv)
         levels = (level if level is not None else [None] * len(q)) if many else level
         bias = [relative(lv) if r else absolute(qi) for r, qi, lv in zip(referred, q, levels)] if many else \

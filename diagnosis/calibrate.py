@@ -131,7 +131,7 @@ def gravity_range(data: RestData, labels) -> tuple | None:
     return tuple(gp.min(axis=0)), tuple(gp.max(axis=0))
 
 
-def consistent_offset(model: ErrorModel, rp, Yp, phi) -> tuple[ErrorModel, np.ndarray]:
+def consistent_offset(model: ErrorModel, rp, Yp, phi, Cs=None) -> tuple[ErrorModel, np.ndarray]:
     """(model with its offset moved, the move (n,) [Nm]) so that the model reads its own load at its own poses: the
     mass that generalised least squares gives from a pose's mean torque less the offset (weights: the absolute
     error's covariance C, as RME weighs an absolute window), averaged over the poses, is the calibrated load's mass.
@@ -141,18 +141,77 @@ def consistent_offset(model: ErrorModel, rp, Yp, phi) -> tuple[ErrorModel, np.nd
     metric (the error the poses leave, not a new error): delta = C k e / (k^T C k), with k (n,) the averaged mass
     row of the poses' estimators and e the mass they give less phi's. Only the mass: a CoM is seen at some poses.
     What the estimator adds to the data's reading (its prior, the mean-field posterior) is its own, not the error
-    model's: docs/real_logs.md measures it."""
+    model's: docs/real_logs.md measures it. Cs: each pose's own C (P of (n, n); a pose-dependent model), C their
+    mean for the move."""
     C = model.absolute_cov if model.correlation is not None else np.diag(np.square(model.absolute))
+    Cs = [C] * len(Yp) if Cs is None else list(Cs)
+    C = np.mean(Cs, axis=0)
     off, n = np.asarray(model.offset, dtype=float), len(model.offset)
     K = []
-    for Y in Yp:                                                   # (n, 4) each
-        S = Y.T @ np.linalg.solve(C, np.eye(n))                    # (4, n) Y^T C^-1
+    for Y, Cp in zip(Yp, Cs):                                      # (n, 4), (n, n) each
+        S = Y.T @ np.linalg.solve(Cp, np.eye(n))                   # (4, n) Y^T C^-1
         G = S @ Y
         K.append(np.linalg.solve(G + 1e-6 * np.trace(G) * np.eye(4), S)[0])   # the mass row; ridge: rz unseen
     k = np.mean(K, axis=0)
     e = float(np.mean([Ki @ (r + Y @ phi - off) for Ki, r, Y in zip(K, rp, Yp)]) - phi[0])
     delta = C @ k * e / max(float(k @ C @ k), 1e-300)
     return replace(model, offset=tuple(off + delta)), delta
+
+
+# The robot model's link inertials against a real Panda's: masses +-5-10 %, CoM shifts of 5-20 mm (panda_facts.md, "a
+# realistic gap"). They set the prior's shape over the links' errors; its scale is fitted on the calibration poses.
+LINK_MASS_SHARE = 0.10
+LINK_COM_SHIFT = 0.02       # m
+
+
+def link_prior(robot: Robot, bodies) -> np.ndarray:
+    """(4 L,) stds of the links' (m, m cx, m cy, m cz) errors before any log: d(m c) = dm c + m dc, the mass off by
+    LINK_MASS_SHARE of itself and the CoM by LINK_COM_SHIFT per axis, independent."""
+    pi = robot.link_parameters(bodies).reshape(-1, 4)            # (L, 4)
+    m = pi[:, :1]
+    mc = np.sqrt((LINK_MASS_SHARE * pi[:, 1:]) ** 2 + (m * LINK_COM_SHIFT) ** 2)
+    return np.hstack([LINK_MASS_SHARE * m, mc]).ravel()
+
+
+def _reml(rp, Ap, prior, log_s, log_u):
+    """-log of the restricted likelihood of the poses' mean residuals rp (P, n) under rp_p = c + A_p dpi + u_p, c
+    flat, dpi ~ N(0, (e^log_s prior)^2), u_p ~ N(0, diag(e^(2 log_u))) (Patterson and Thompson's REML: the
+    offsets' n degrees of freedom taken out)."""
+    P, n = rp.shape
+    A = Ap.reshape(P * n, -1)                                      # (P n, k)
+    K = (np.exp(log_s) ** 2) * (A * prior**2) @ A.T + np.diag(np.tile(np.exp(2 * log_u), P))
+    X = np.tile(np.eye(n), (P, 1))                                 # (P n, n)
+    L = np.linalg.cholesky(K)
+    Ki = lambda B: np.linalg.solve(L.T, np.linalg.solve(L, B))
+    KX, Ky = Ki(X), Ki(rp.ravel())
+    F = X.T @ KX
+    c = np.linalg.solve(F, X.T @ Ky)
+    res = rp.ravel() - X @ c
+    return 0.5 * (2 * np.log(np.diag(L)).sum() + np.linalg.slogdet(F)[1] + res @ Ki(res))
+
+
+def link_errors(rp, Ap, prior, floor=0.001):
+    """(scale, u (n,)) of the pose-dependent error as links' inertial errors: rp_p = c + A_p dpi + u_p over the P
+    poses (rp (P, n) mean residuals, Ap (P, n, k) the links' gravity regressors, dpi ~ N(0, (scale prior)^2),
+    u_p ~ N(0, diag(u^2))), scale and u [Nm] (at least floor) by REML (_reml)."""
+    from scipy.optimize import minimize
+    n = rp.shape[1]
+    x0 = np.r_[0.0, np.log(np.maximum(rp.std(axis=0), 0.01))]
+    bounds = [(np.log(1e-3), np.log(30.0))] + [(np.log(floor), np.log(20.0))] * n
+    fit = minimize(lambda x: _reml(rp, Ap, prior, x[0], x[1:]), x0, method="L-BFGS-B", bounds=bounds)
+    return float(np.exp(fit.x[0])), np.exp(fit.x[1:])
+
+
+def links_covariance(Ap, prior, scale, u) -> np.ndarray:
+    """(n + k, n + k) covariance of (c, dpi), c the offset's error less the poses' mean link error Abar dpi: the
+    error at a pose q about the offset (the poses' mean residual), c + A(q) dpi, then has covariance
+    u^2 / P + (A - Abar) S (A - Abar)^T, S = diag(scale prior)^2, Abar (n, k) the poses' mean regressor Ap (P, n, k).
+    dpi keeps its prior: a few poses cannot tell 4 L link parameters apart (docs/real_logs.md measures the
+    posterior's extrapolation against this)."""
+    Ab = Ap.mean(axis=0)
+    S = np.diag((scale * prior) ** 2)
+    V = np.diag(u**2) / len(Ap)
+    return np.block([[V + Ab @ S @ Ab.T, -Ab @ S], [-S @ Ab.T, S]])
 
 
 def referred_drift(data: RestData, r) -> np.ndarray | None:
@@ -167,7 +226,8 @@ def referred_drift(data: RestData, r) -> np.ndarray | None:
     return np.sqrt(np.maximum(excess.mean(axis=0), 0.0))
 
 
-def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
+def calibrate(data: RestData, load: str = "none", pose_model: str = "offset", robot: Robot | None = None
+              ) -> tuple[ErrorModel, dict]:
     """The error model of the robot in `data` (RestData) and a report. load "none": nothing was attached (phi = 0);
     "fit": one unchanged load, fitted with the model (pooled_payload): the part of the robot's error that looks
     like a payload is then taken into the load, and cannot be calibrated. Per joint, with r_w = tau_w - Y_w phi:
@@ -178,9 +238,14 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
     drift the part of it beyond the two windows' own slow parts (referred_drift: for a baseline given as a window);
     gravity_range: the lowest and highest of each joint's G_j(q) over the poses (data.gravity), beyond which the
     absolute error is not measured (ErrorModel.absolute_cov_at). With load "fit", the offset is then moved the least
-    that makes the model read its own load's mass at its own poses (consistent_offset; report: offset_shift)."""
+    that makes the model read its own load's mass at its own poses (consistent_offset; report: offset_shift).
+    pose_model "links": the pose-dependent error is instead the robot's links' inertial errors through their gravity
+    regressor (robot's, default the Panda; link_errors), the offset and those errors a posterior, absolute the
+    per-joint remainder; no gravity range (the links' model carries to new poses) and no offset move."""
     if load not in ("none", "fit"):
         raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
+    if pose_model not in ("offset", "links"):
+        raise ValueError(f"pose_model: expected 'offset' or 'links', found {pose_model!r}")
     W, n = data.tau.shape
     P = data.poses()
     k = n + (4 if load == "fit" else 0)
@@ -218,9 +283,15 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                        gravity_range=gravity_range(data, labels),
                        drift=None if (drift := referred_drift(data, r)) is None else tuple(np.maximum(drift, floor)))
     shift = np.zeros(n)
+    Cs = None
+    if pose_model == "links":
+        model, Ap, links = _links_model(model, data, labels, rp, robot)
+        Cs = [model.pose_error_at(A)[1] for A in Ap]
+        notes.append(f"the pose-dependent error as the links' inertial errors: {links['scale']:.2f} x the prior of "
+                     f"{LINK_MASS_SHARE:.0%} of each link's mass and {LINK_COM_SHIFT * 1000:.0f} mm of its CoM")
     if load == "fit":                              # a load fitted beside the offset: the two must agree
         model, shift = consistent_offset(model, rp, np.array([data.Y[labels == i].mean(axis=0) for i in range(P)]),
-                                         phi)
+                                         phi, Cs)
     theta = theta_of(phi) if load == "fit" else np.zeros(4)
     report = dict(windows=int(W), poses=int(P), pairs=int(pairs.sum()), load=load, phi=phi.tolist(),
                   offset_shift=shift.tolist(), load_and_offsets_separated=bool(joint), mass_std=mass_std,
@@ -228,55 +299,18 @@ def calibrate(data: RestData, load: str = "none") -> tuple[ErrorModel, dict]:
                   referred=list(model.referred), offset=list(model.offset), correlation=[list(x) for x in corr],
                   shrinkage=lam, notes=notes,
                   gravity_range=None if model.gravity_range is None else [list(x) for x in model.gravity_range],
-                  gravity_share=model.gravity_share, drift=None if model.drift is None else list(model.drift))
+                  gravity_share=model.gravity_share, drift=None if model.drift is None else list(model.drift),
+                  pose_model=pose_model, **({"links": links} if pose_model == "links" else {}))
     return model, report
 
 
-def format_report(rep: dict) -> str:
-    f = lambda v: " ".join(f"{x:6.3f}" for x in v)
-    lines = [f"error model from {rep['windows']} rest windows of 200 ms at {rep['poses']} poses "
-             f"({rep['pairs']} referred pairs), load: {rep['load']}"]
-    if rep["load"] == "fit":
-        th = rep["theta"]
-        lines.append(f"  the load fitted with it: m = {th[0]:.3f} kg, r = ({th[1]:+.3f}, {th[2]:+.3f}, {th[3]:+.3f}) m")
-    lines += [f"  joint              " + " ".join(f"{j:>6}" for j in range(1, len(rep['offset']) + 1)),
-              f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
-              f"    of it, moved      {f(rep['offset_shift'])}   (so that the model reads its load at its poses)",
-              f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
-              f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
-    if rep.get("drift"):
-        lines.append(f"  drift std [Nm]     {f(rep['drift'])}   (the same beside the two windows' own swings)")
-    if rep.get("gravity_range"):
-        lo, hi = rep["gravity_range"]
-        lines.append(f"  gravity G(q) [Nm]  " + " ".join(f"{a:+.0f}..{b:+.0f}".rjust(6) for a, b in zip(lo, hi))
-                     + f"   (measured within; beyond: {rep['gravity_share']:.0%} of the excess)")
-    return "\n".join(lines + [f"  note: {x}" for x in rep["notes"]])
-
-
-def main(argv=None, prog: str = "rme.py calibrate") -> int:
-    p = checks.Parser(prog=prog, description="Calibrate RME's error model from rest windows of your robot's logs "
-                      "(libfranka-style CSV or franka.py .npz).")
-    p.add_argument("logs", nargs="+", metavar="LOG")
-    p.add_argument("--load", choices=("none", "fit"), default="none",
-                   help="none: nothing attached; fit: one unchanged load, fitted with the model")
-    p.add_argument("--save", metavar="FILE", help="write the model as JSON (RME(calibration=FILE))")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
-    args = p.parse_args(argv)
-    try:
-        if args.save:
-            checks.output_file("--save", args.save)            # before any work
-        robot = Robot.panda()
-        data = rest_data([load_log(x) for x in args.logs], robot)
-        model, rep = calibrate(data, args.load)
-    except ValueError as err:
-        print(f"{prog}: {err}", file=sys.stderr)
-        return 2
-    if args.save:
-        try:
-            model.save(args.save)
-        except OSError as err:
-            print(f"{prog}: --save: could not write {args.save!r}: {err}", file=sys.stderr)
-            return 2
-        rep["saved"] = args.save
-    print(json.dumps(rep) if args.json else format_report(rep) + (f"\nsaved to {args.save}" if args.save else ""))
-    return 0
+def _links_model(model: ErrorModel, data: RestData, labels, rp, robot: Robot | None):
+    """(model with its pose-dependent error as link errors, Ap (P, n, k), report dict) for pose_model "links"."""
+    robot = Robot.panda() if robot is None else robot
+    bodies = robot.link_bodies()
+    Ap = np.array([robot.link_gravity_regressor(data.q[labels == i].mean(axis=0), bodies) for i in range(len(rp))])
+    prior = link_prior(robot, bodies)
+    scale, u = link_errors(rp, Ap, prior)
+    model = replace(model, absolute=tuple(u), offset=tuple(rp.mean(axis=0)), correlation=None, gravity_range=None,
+                    links=bodies, link_cov=tuple(map(tuple, links_covariance(Ap, prior, scale, u))))
+    return model, Ap, dict(scale=scale, bodies=list(bodies), remainder=list(u), prior=list(prior))

@@ -37,13 +37,14 @@ def _summary(M, S, truth, names=NAMES, mass=None):
     return out
 
 
-def leave_pose_out(data, samples, seed=0):
-    """RME on each pose's windows (absolute) calibrated (load fitted) on the windows of the other poses only: what a
-    calibration says of a pose it has not seen. Returns (mean (W, 4), std (W, 4)) in the windows' order."""
+def leave_pose_out(data, samples, seed=0, pose_model="offset"):
+    """RME on each pose's windows (absolute) calibrated (load fitted; pose_model as diagnosis.calibrate's) on the
+    windows of the other poses only: what a calibration says of a pose it has not seen. Returns (mean (W, 4),
+    std (W, 4)) in the windows' order."""
     labels = data.pose_labels()
     M, S = np.full((len(labels), 4), np.nan), np.full((len(labels), 4), np.nan)
     for p in range(labels.max() + 1):
-        model, _ = calibrate(data.subset(labels != p), "fit")
+        model, _ = calibrate(data.subset(labels != p), "fit", pose_model)
         est = RME(rng=np.random.default_rng(seed), calibration=model)
         for w in np.flatnonzero(labels == p):
             e = est.estimate(*samples(w))
@@ -52,10 +53,11 @@ def leave_pose_out(data, samples, seed=0):
 
 
 def real_logs(paths, calibration=None, config: RestConfig = RestConfig(), leave_out: bool = False,
-              mass: float | None = None) -> dict:
+              mass: float | None = None, pose_model: str = "offset") -> dict:
     """The benchmark as a dict: absolute windows (each as it is) against the pooled least-squares theta, and
     referred windows (each less the mean of the window before it in the same rest run: no change, truth m = 0).
-    leave_out: also RME calibrated, for each pose, on the other poses' windows (leave_pose_out; 3 poses at least).
+    leave_out: also RME calibrated, for each pose, on the other poses' windows (leave_pose_out; 3 poses at least;
+    pose_model "offset" or "links", as diagnosis.calibrate's).
     mass [kg]: the load's mass known otherwise (other logs, a scale): each absolute row says how often it is held."""
     if not paths:
         raise ValueError("logs: expected at least one log file, found none")
@@ -87,7 +89,7 @@ def real_logs(paths, calibration=None, config: RestConfig = RestConfig(), leave_
         if res["poses"] < 3:
             raise ValueError(f"--leave-pose-out: expected rest at 3 poses at least (a calibration with the load "
                              f"fitted needs 2), found {res['poses']}")
-        res["absolute"]["RME, calibrated on the other poses"] = _summary(*leave_pose_out(data, samples), pooled,
+        res["absolute"]["RME, calibrated on the other poses"] = _summary(*leave_pose_out(data, samples, pose_model=pose_model), pooled,
                                                                          mass=mass)
     return res
 
@@ -118,6 +120,7 @@ def main(args):
         raise ValueError(f"DIR: expected a folder of logs, found no folder at {args.dir!r}")
     as_error_model(args.calibration)                     # a calibration that cannot be read: before the logs
     paths = sorted(glob.glob(os.path.join(args.dir, "*.csv")) + glob.glob(os.path.join(args.dir, "*.npz")))
-    res = real_logs(paths, calibration=args.calibration, leave_out=args.leave_pose_out, mass=args.mass)
+    res = real_logs(paths, calibration=args.calibration, leave_out=args.leave_pose_out, mass=args.mass,
+                     pose_model=args.pose_model)
     print(json.dumps(res)) if args.json else print_real_logs(res)
     return res
