@@ -1,6 +1,6 @@
 """The robot's error model (error_model.ErrorModel) from its own rest log: what tau_ext holds besides the payload,
 per joint, in an absolute window and in one referred to the level before. `python rme.py calibrate LOG [LOG ...]
-[--load none|fit] --save robot.json [--json]`."""
+[--load none|fit] [--pose-model offset|links] --save robot.json [--json]`."""
 from __future__ import annotations
 
 import json
@@ -287,8 +287,6 @@ def calibrate(data: RestData, load: str = "none", pose_model: str = "offset", ro
     if pose_model == "links":
         model, Ap, links = _links_model(model, data, labels, rp, robot)
         Cs = [model.pose_error_at(A)[1] for A in Ap]
-        notes.append(f"the pose-dependent error as the links' inertial errors: {links['scale']:.2f} x the prior of "
-                     f"{LINK_MASS_SHARE:.0%} of each link's mass and {LINK_COM_SHIFT * 1000:.0f} mm of its CoM")
     if load == "fit":                              # a load fitted beside the offset: the two must agree
         model, shift = consistent_offset(model, rp, np.array([data.Y[labels == i].mean(axis=0) for i in range(P)]),
                                          phi, Cs)
@@ -314,3 +312,61 @@ def _links_model(model: ErrorModel, data: RestData, labels, rp, robot: Robot | N
     model = replace(model, absolute=tuple(u), offset=tuple(rp.mean(axis=0)), correlation=None, gravity_range=None,
                     links=bodies, link_cov=tuple(map(tuple, links_covariance(Ap, prior, scale, u))))
     return model, Ap, dict(scale=scale, bodies=list(bodies), remainder=list(u), prior=list(prior))
+
+
+def format_report(rep: dict) -> str:
+    f = lambda v: " ".join(f"{x:6.3f}" for x in v)
+    lines = [f"error model from {rep['windows']} rest windows of 200 ms at {rep['poses']} poses "
+             f"({rep['pairs']} referred pairs), load: {rep['load']}"]
+    if rep["load"] == "fit":
+        th = rep["theta"]
+        lines.append(f"  the load fitted with it: m = {th[0]:.3f} kg, r = ({th[1]:+.3f}, {th[2]:+.3f}, {th[3]:+.3f}) m")
+    lines += [f"  joint              " + " ".join(f"{j:>6}" for j in range(1, len(rep['offset']) + 1)),
+              f"  offset [Nm]        {f(rep['offset'])}   (subtracted from absolute windows)",
+              f"    of it, moved      {f(rep['offset_shift'])}   (so that the model reads its load at its poses)",
+              f"  absolute std [Nm]  {f(rep['absolute'])}   (a window taken as it is)",
+              f"  referred std [Nm]  {f(rep['referred'])}   (a window less the level just before it)"]
+    if rep.get("drift"):
+        lines.append(f"  drift std [Nm]     {f(rep['drift'])}   (the same beside the two windows' own swings)")
+    if rep.get("links"):
+        lk = rep["links"]
+        lines.append(f"  links' errors      {lk['scale']:.2f} x ({LINK_MASS_SHARE:.0%} of each mass, "
+                     f"{LINK_COM_SHIFT * 1000:.0f} mm of each CoM) on {', '.join(lk['bodies'])};"
+                     f" absolute std: the rest")
+    if rep.get("gravity_range"):
+        lo, hi = rep["gravity_range"]
+        lines.append(f"  gravity G(q) [Nm]  " + " ".join(f"{a:+.0f}..{b:+.0f}".rjust(6) for a, b in zip(lo, hi))
+                     + f"   (measured within; beyond: {rep['gravity_share']:.0%} of the excess)")
+    return "\n".join(lines + [f"  note: {x}" for x in rep["notes"]])
+
+
+def main(argv=None, prog: str = "rme.py calibrate") -> int:
+    p = checks.Parser(prog=prog, description="Calibrate RME's error model from rest windows of your robot's logs "
+                      "(libfranka-style CSV or franka.py .npz).")
+    p.add_argument("logs", nargs="+", metavar="LOG")
+    p.add_argument("--load", choices=("none", "fit"), default="none",
+                   help="none: nothing attached; fit: one unchanged load, fitted with the model")
+    p.add_argument("--pose-model", choices=("offset", "links"), default="offset",
+                   help="offset: the pose-dependent error as an offset and a covariance over the poses; links: as the "
+                        "robot's links' inertial errors through their gravity torque (carries to new poses)")
+    p.add_argument("--save", metavar="FILE", help="write the model as JSON (RME(calibration=FILE))")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    args = p.parse_args(argv)
+    try:
+        if args.save:
+            checks.output_file("--save", args.save)            # before any work
+        robot = Robot.panda()
+        data = rest_data([load_log(x) for x in args.logs], robot)
+        model, rep = calibrate(data, args.load, args.pose_model, robot)
+    except ValueError as err:
+        print(f"{prog}: {err}", file=sys.stderr)
+        return 2
+    if args.save:
+        try:
+            model.save(args.save)
+        except OSError as err:
+            print(f"{prog}: --save: could not write {args.save!r}: {err}", file=sys.stderr)
+            return 2
+        rep["saved"] = args.save
+    print(json.dumps(rep) if args.json else format_report(rep) + (f"\nsaved to {args.save}" if args.save else ""))
+    return 0

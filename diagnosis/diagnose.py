@@ -94,7 +94,9 @@ def calibrated_config(config: EffectConfig, error_model, robot: Robot, log: Log,
         raise ValueError(f"--calibration: expected an error model of {robot.n} joints like the arm, found "
                          f"{len(error_model.offset)} ({error_model.source})")
     gravity = np.array([robot.gravity(q) for q in log.q[::every]])
-    bound, source = offset_bounds(error_model, gravity)
+    links = None if error_model.links is None else \
+        [robot.link_gravity_regressor(q, error_model.links) for q in log.q[::every]]
+    bound, source = offset_bounds(error_model, gravity, links)
     return dataclasses.replace(config, offset_max=bound, offset_source=source)
 
 

@@ -26,13 +26,18 @@ PANDA_OFFSET_SOURCE = ("|offset| + 3 std of a real Panda's static error at a pos
 BOUND_SIGMAS = 3.0          # stds of a pose's static error the offset bound allows (0.3 % of poses beyond, Gaussian)
 
 
-def offset_bounds(error_model, gravity=None) -> tuple[tuple, str]:
+def offset_bounds(error_model, gravity=None, links=None) -> tuple[tuple, str]:
     """(bound (n,) [Nm], source) of |tau_0| per joint from an error_model.ErrorModel (a calibration of this robot):
     |offset_j| + BOUND_SIGMAS sqrt(C_jj), C the absolute error's covariance at the log's poses (gravity (P, n): their
-    gravity torques; beyond the calibrated range it grows, ErrorModel.absolute_cov_at), the largest over them."""
-    poses = [None] if gravity is None else np.atleast_2d(gravity)
+    gravity torques; beyond the calibrated range it grows, ErrorModel.absolute_cov_at; for a model of link errors,
+    links (P, n, 4 L): the poses' link gravity regressors, ErrorModel.pose_error_at), the largest over them."""
     stds = lambda C: np.sqrt(np.diag(C)) if C.ndim == 2 else C    # absolute_cov_at: (n, n) or stds (n,)
-    std = np.max([stds(np.asarray(error_model.absolute_cov_at(g))) for g in poses], axis=0)
+    if error_model.links is not None and links is not None:
+        covs = [error_model.pose_error_at(A)[1] for A in links]
+    else:
+        poses = [None] if gravity is None else np.atleast_2d(gravity)
+        covs = [np.asarray(error_model.absolute_cov_at(g)) for g in poses]
+    std = np.max([stds(C) for C in covs], axis=0)
     bound = np.abs(np.asarray(error_model.offset)) + BOUND_SIGMAS * std
     return tuple(float(x) for x in np.round(bound, 3)), (f"|offset| + {BOUND_SIGMAS:g} std of the static error at a "
                                                          f"pose, {error_model.source}")

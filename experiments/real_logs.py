@@ -89,8 +89,8 @@ def real_logs(paths, calibration=None, config: RestConfig = RestConfig(), leave_
         if res["poses"] < 3:
             raise ValueError(f"--leave-pose-out: expected rest at 3 poses at least (a calibration with the load "
                              f"fitted needs 2), found {res['poses']}")
-        res["absolute"]["RME, calibrated on the other poses"] = _summary(*leave_pose_out(data, samples, pose_model=pose_model), pooled,
-                                                                         mass=mass)
+        res["absolute"]["RME, calibrated on the other poses"] = _summary(
+            *leave_pose_out(data, samples, pose_model=pose_model), pooled, mass=mass)
     return res
 
 
