@@ -176,13 +176,13 @@ class RME:
                               referred=[ref(b) for b in each(baseline)], level=[w[2] for w in windows])[0]
 
     def _absolute_error(self, q):
-        """(mean (n,), covariance (n, n) or stds (n,)) [Nm] of an absolute window's constant error at the window q's
-        (T, n) mean pose: from the calibrated links' errors (ErrorModel.pose_error_at) when the model has them, else
-        the offset and the absolute error at the pose's own gravity torque (ErrorModel.absolute_cov_at)."""
+        """The covariance (n, n) or stds (n,) [Nm] of an absolute window's constant error about the offset at the
+        window q's (T, n) mean pose: from the calibrated links' errors (ErrorModel.pose_error_at) when the model has
+        them, else at the pose's own gravity torque (ErrorModel.absolute_cov_at)."""
         em, qm = self.error_model, np.mean(q, axis=0)
         if em.links is not None:
-            return em.pose_error_at(self.robot.link_gravity_regressor(qm, em.links))
-        return np.asarray(em.offset), em.absolute_cov_at(self.robot.gravity(qm))
+            return em.pose_error_at(self.robot.link_gravity_regressor(qm, em.links))[1]
+        return em.absolute_cov_at(self.robot.gravity(qm))
 
     def _window(self, q, tau_ext, baseline, dq, referred):
         """A checked (q, tau) (T, n) window, less the baseline (its mean, for a window) and the correction; and
@@ -202,7 +202,7 @@ class RME:
             tau = tau - base.mean(axis=0)
             level = vi.level_variance(base, self.settings.vi) if window else None
         if not referred:                                             # an absolute window: the calibrated mean
-            tau = tau - self._absolute_error(q)[0]                   #   model error, and the known tool's weight
+            tau = tau - np.asarray(self.error_model.offset)          #   model error, and the known tool's weight
             if self.tool is not None:
                 tau = tau - self.robot.payload_regressor(q) @ self._tool_phi
         if self.correction is not None:
@@ -241,7 +241,7 @@ class RME:
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
         speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
         em, s = self.error_model, self.settings
-        absolute = lambda qi: self._absolute_error(qi)[1]                                 # at the pose
+        absolute = self._absolute_error                                                   # at the window's pose
         relative = lambda lv: em.referred if lv is None or em.drift is None else np.sqrt(np.square(em.drift) + lv)
         levels = (level if level is not None else [None] * len(q)) if many else level
         bias = [relative(lv) if r else absolute(qi) for r, qi, lv in zip(referred, q, levels)] if many else \

@@ -240,8 +240,8 @@ def calibrate(data: RestData, load: str = "none", pose_model: str = "offset", ro
     absolute error is not measured (ErrorModel.absolute_cov_at). With load "fit", the offset is then moved the least
     that makes the model read its own load's mass at its own poses (consistent_offset; report: offset_shift).
     pose_model "links": the pose-dependent error is instead the robot's links' inertial errors through their gravity
-    regressor (robot's, default the Panda; link_errors), the offset and those errors a posterior, absolute the
-    per-joint remainder; no gravity range (the links' model carries to new poses) and no offset move."""
+    regressor (robot's, default the Panda; link_errors, links_covariance), absolute the per-joint remainder, no
+    correlation and no gravity range (the links' model carries to new poses); the offset is moved as above."""
     if load not in ("none", "fit"):
         raise ValueError(f"load: expected 'none' or 'fit', found {load!r}")
     if pose_model not in ("offset", "links"):
