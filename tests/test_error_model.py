@@ -176,6 +176,13 @@ def test_calibrate_command_writes_a_model_rme_reads(tmp_path):
     assert rep["poses"] == 6 and rep["load"] == "none"
     model = RME(calibration=str(tmp_path / "robot.json")).error_model
     np.testing.assert_allclose(model.offset, np.mean(bias[::600], axis=0), atol=0.02)
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "rme.py"), "calibrate", str(tmp_path / "rest.npz"),
+                          "--pose-model", "links", "--save", str(tmp_path / "links.json")], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0 and "links' errors" in out.stdout, out.stderr
+    links = RME(calibration=str(tmp_path / "links.json")).error_model
+    assert links.links == ROBOT.link_bodies()
+    np.testing.assert_allclose(links.offset, model.offset, atol=1e-9)      # no load: the poses' mean either way
     bad = subprocess.run([sys.executable, os.path.join(ROOT, "rme.py"), "calibrate", str(tmp_path / "none.csv")],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "none.csv" in bad.stderr
