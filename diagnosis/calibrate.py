@@ -176,18 +176,22 @@ def link_prior(robot: Robot, bodies) -> np.ndarray:
 def _reml(rp, Ap, prior, log_s, log_u):
     """-log of the restricted likelihood of the poses' mean residuals rp (P, n) under rp_p = c + A_p dpi + u_p, c
     flat, dpi ~ N(0, (e^log_s prior)^2), u_p ~ N(0, diag(e^(2 log_u))) (Patterson and Thompson's REML: the
-    offsets' n degrees of freedom taken out)."""
+    offsets' n degrees of freedom taken out). K = D + B B^T, D the u's, B = A diag(e^log_s prior), by Woodbury:
+    K^-1 = D^-1 - D^-1 B M^-1 B^T D^-1 and log|K| = log|D| + log|M|, M = I + B^T D^-1 B (k, k)."""
     P, n = rp.shape
-    A = Ap.reshape(P * n, -1)                                      # (P n, k)
-    K = (np.exp(log_s) ** 2) * (A * prior**2) @ A.T + np.diag(np.tile(np.exp(2 * log_u), P))
+    B = Ap.reshape(P * n, -1) * (np.exp(log_s) * prior)            # (P n, k)
+    d = np.tile(np.exp(2 * log_u), P)                              # (P n,) the diagonal of D
+    M = np.eye(B.shape[1]) + B.T @ (B / d[:, None])
+    L = np.linalg.cholesky(M)
+    def Ki(V):                                                     # K^-1 V, V (P n, ...)
+        DV = V / (d if V.ndim == 1 else d[:, None])
+        W = np.linalg.solve(L.T, np.linalg.solve(L, B.T @ DV))
+        return DV - (B @ W) / (d if V.ndim == 1 else d[:, None])
     X = np.tile(np.eye(n), (P, 1))                                 # (P n, n)
-    L = np.linalg.cholesky(K)
-    Ki = lambda B: np.linalg.solve(L.T, np.linalg.solve(L, B))
-    KX, Ky = Ki(X), Ki(rp.ravel())
-    F = X.T @ KX
-    c = np.linalg.solve(F, X.T @ Ky)
-    res = rp.ravel() - X @ c
-    return 0.5 * (2 * np.log(np.diag(L)).sum() + np.linalg.slogdet(F)[1] + res @ Ki(res))
+    F = X.T @ Ki(X)
+    res = rp.ravel() - X @ np.linalg.solve(F, X.T @ Ki(rp.ravel()))
+    logdet = np.log(d).sum() + 2 * np.log(np.diag(L)).sum()
+    return 0.5 * (logdet + np.linalg.slogdet(F)[1] + res @ Ki(res))
 
 
 def link_errors(rp, Ap, prior, floor=0.001):
