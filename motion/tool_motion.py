@@ -31,6 +31,10 @@ class MotionSettings:
     #                                tracks less alike with and without the tool: one realistic tool's diagonal came
     #                                out 18-26 % low there, 2-6 % at 1.1-1.5 Hz, docs/tool_identification.md)
     max_duration: float = 20.0     # s: the whole motion at most (the target)
+    max_shift: float = 0.05        # rad: how far the start pose may lie from the motion's centre on any joint (the
+    #                                tool run is made about the reference's start: a robot holding a tool it does not
+    #                                know sags before control starts, 1.6 mrad on joint 2 on franky-sim for 1.4 kg);
+    #                                the fit's reference_tolerance: beyond it the two runs are not the same motion
     kp: tuple = (600.0,) * 4 + (50.0, 50.0, 150.0)   # Nm/rad: cpic.JointHold's gains (a 3 kg load moves the arm
     kd: tuple = (40.0,) * 4 + (4.0, 4.0, 7.0)        # Nm s/rad   by a few mrad), joint 7 three times stiffer (the
     #                                same damping ratio, kd ~ sqrt(kp)): the tool's inertia then changes joint 7's
@@ -57,19 +61,28 @@ class MotionSettings:
     #                                0.2 s swung the arm enough for the watch to take it for a push, 2.7 Nm)
 
 
-def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings()):
-    """The reference q_d, dq_d, ddq_d (T, n) at settings.rate: rest, the cone (joints 5, 6 of amplitude a e(t),
-    e a cosine ramp), the oscillations of joints 5-7 (each A sin(2 pi f t) under a ramp, A = v / (2 pi f)), rest.
-    Each joint's amplitude is cut to stay settings.margin from its limits; the time is scaled so no joint exceeds
-    settings.max_speed. ValueError if q0 is already within the margin of a limit or the motion is too long."""
+def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings(), center=None):
+    """The reference q_d, dq_d, ddq_d (T, n) at settings.rate about `center` (n,) (default q0): rest (from q0 to
+    the centre by a cosine ramp), the cone (joints 5, 6 of amplitude a e(t), e a cosine ramp), the oscillations of
+    joints 5-7 (each A sin(2 pi f t) under a ramp, A = v / (2 pi f)), rest. Each joint's amplitude is cut to stay
+    settings.margin from its limits; the time is scaled so no joint exceeds settings.max_speed. ValueError if q0 or
+    the centre is already within the margin of a limit, they lie more than settings.max_shift apart, or the motion
+    is too long."""
     s, n = settings, robot.n
     q0 = as_states("q0", q0, n, allow_window=False)[0][0]
+    c = q0 if center is None else as_states("center", center, n, allow_window=False)[0][0]
     lo, hi = robot.model.jnt_range[:, 0] + s.margin, robot.model.jnt_range[:, 1] - s.margin
-    if np.any(q0 < lo) or np.any(q0 > hi):
-        j = int(np.argmax((q0 < lo) | (q0 > hi)))
-        raise ValueError(f"q0: expected every joint at least {s.margin} rad inside its limits, found joint {j + 1} at "
-                         f"{q0[j]:.3f} rad (limits {lo[j] - s.margin:.3f}..{hi[j] + s.margin:.3f})")
-    room = np.minimum(q0 - lo, hi - q0)                         # (n,) what each joint may swing
+    for name, p in (("q0", q0), ("center", c)):
+        if np.any(p < lo) or np.any(p > hi):
+            j = int(np.argmax((p < lo) | (p > hi)))
+            raise ValueError(f"{name}: expected every joint at least {s.margin} rad inside its limits, found joint "
+                             f"{j + 1} at {p[j]:.3f} rad (limits {lo[j] - s.margin:.3f}..{hi[j] + s.margin:.3f})")
+    if np.abs(c - q0).max() > s.max_shift:
+        j = int(np.argmax(np.abs(c - q0)))
+        raise ValueError(f"center: expected within {s.max_shift} rad of the start pose q0 on every joint (the same "
+                         f"motion as the reference's), found joint {j + 1} {c[j] - q0[j]:+.3f} rad away: move the arm "
+                         f"to the reference's start pose or record the reference again here")
+    room = np.minimum(c - lo, hi - c)                           # (n,) what each joint may swing
     dt = 1.0 / s.rate
     a5, a6 = (min(s.tilt, room[j]) for j in WRIST[:2])
     tau = np.linspace(0.0, 1.0, 2001)                          # the cone in normalised time, then stretched so
@@ -86,10 +99,11 @@ def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings()):
         A = min(s.max_speed / 1.3 / (2 * math.pi * f), room[j])   # 1.3: the ramp's share
         d2[:, j] = A * e2 * np.sin(2 * math.pi * f * t2)
     rest = np.zeros((int(round(s.rest * s.rate)), n))
-    D = np.vstack([rest, d, d2, rest])
+    shift = 0.5 * (1 + np.cos(math.pi * np.linspace(0.0, 1.0, len(rest))))[:, None] * (q0 - c)   # q0 -> centre
+    D = np.vstack([shift, d, d2, rest])
     if len(D) * dt > s.max_duration + 1e-9:
         raise ValueError(f"settings: the motion lasts {len(D) * dt:.1f} s, expected at most {s.max_duration} s")
-    q = q0 + D
+    q = c + D
     dq = np.gradient(q, dt, axis=0)
     ddq = np.gradient(dq, dt, axis=0)
     return q, dq, ddq
@@ -155,12 +169,12 @@ class ExcitationController:
     abandoned at once: the reference stops where the arm is, the spring drops to settings.soft of its stiffness and
     the compensation keeps the fit of the samples before the push; settings.stop_after later `finished` says the run
     is over (robot.loop.run_loop then ends it). step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's
-    controllers; after the reference it holds its last point. abandoned: the time [s] of the push or None; pushed_joint:
+    controllers; after the reference it holds its last point; center: excitation's. abandoned: the time [s] of the push or None; pushed_joint:
     the joint (1-based) furthest over its threshold when the push was confirmed, push_residual its r [Nm]."""
 
-    def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings()):
+    def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings(), center=None):
         self.robot, self.settings = robot, settings
-        self.q_d, self.dq_d, self.ddq_d = excitation(robot, q0, settings)
+        self.q_d, self.dq_d, self.ddq_d = excitation(robot, q0, settings, center)
         self.kp, self.kd = np.asarray(settings.kp, float), np.asarray(settings.kd, float)
         self.watch = PushWatch(robot, settings)
         self.k, self.abandoned, self._hold = 0, None, None

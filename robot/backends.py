@@ -113,12 +113,14 @@ class PylibfrankaBackend:
 
 
 class FrankySimBackend(PylibfrankaBackend):
-    """pylibfranka against franky-sim, which reports tau_ext_hat_filtered = tau_J (no external-torque estimate):
-    read() replaces it with what libfranka's would be with the hand configured in Desk, tau_J - G(q), G the
-    gravity of the simulated arm and hand (franky-sim's own MJCF, fingers at `finger` m each) at the measured q.
-    At rest that is the torque of whatever the arm carries beyond its model (libfranka's sign)."""
+    """pylibfranka against franky-sim, which reports tau_ext_hat_filtered = tau_J (no external-torque estimate; its
+    tau_J is the torque applied to the joints): read() replaces it with what libfranka's is, the torque of whatever
+    the arm carries beyond its model, without "the mass and dynamics of the robot" (libfranka's RobotState): De Luca's
+    momentum observer (MomentumObserver, gain `observer_gain`) on the simulated arm and hand (franky-sim's own MJCF,
+    its rotor inertia and damping, fingers at `finger` m each), started at the static estimate tau_J - G(q)."""
 
-    def __init__(self, ip: str, xml: str | None = None, finger: float = 0.04, **kwargs):     # xml: the sim's MJCF
+    def __init__(self, ip: str, xml: str | None = None, finger: float = 0.04, observer_gain: float = 100.0,
+                 **kwargs):     # xml: the sim's MJCF; observer_gain [1/s]: the realistic plant's (sim.PlantConfig)
         import mujoco
         if xml is None:
             import franky_sim
@@ -138,6 +140,7 @@ class FrankySimBackend(PylibfrankaBackend):
         for j in fingers:
             if j >= 0:
                 self._data.qpos[self._model.jnt_qposadr[j]] = finger
+        self._gain, self._observer = float(observer_gain), None
         super().__init__(ip, **kwargs)
 
     def joint_limits(self) -> np.ndarray:
@@ -156,10 +159,49 @@ class FrankySimBackend(PylibfrankaBackend):
         mj.mj_rne(m, d, 0, out)
         return out[self._dof_adr]
 
+    def terms(self, q, dq):
+        """M(q) (7, 7) with the rotors' inertia and n = C dq + G + the joints' damping (7,) of the simulated arm."""
+        m, d, mj, a = self._model, self._data, self._mj, self._dof_adr
+        d.qpos[self._q_adr], d.qvel[:] = q, 0.0
+        d.qvel[a] = dq
+        mj.mj_kinematics(m, d)
+        mj.mj_comPos(m, d)
+        mj.mj_makeM(m, d)
+        mj.mj_comVel(m, d)
+        M, n = np.zeros((m.nv, m.nv)), np.empty(m.nv)
+        mj.mj_fullM(m, d, M)
+        mj.mj_rne(m, d, 0, n)
+        return M[np.ix_(a, a)], n[a] + m.dof_damping[a] * dq
+
     def read(self) -> State:
         s = super().read()
-        s.tau_ext_hat_filtered = s.tau_J - self.gravity(s.q)
+        if self._observer is None:
+            self._observer = MomentumObserver(self.terms, s.tau_J - self.gravity(s.q), self._gain)
+        s.tau_ext_hat_filtered = self._observer.update(s.q, s.dq, s.tau_J, max(float(s.duration_s), 1e-3))
         return s
+
+
+class MomentumObserver:
+    """De Luca's momentum observer in libfranka's sign: r (n,) follows tau_x = tau_J - (M ddq + n) (what acts on the
+    joints beyond the model) as dr/dt = K (tau_x - r), from q, dq, tau_J alone: r = K (p0 + sum dt (tau_J - n' - r)
+    - p), p = M dq, n' = n - Mdot dq (Mdot by the step's difference; De Luca et al. 2006, as sim.Plant's in the
+    paper's sign). terms(q, dq) -> (M (n, n), n (n,)); r0: r at the first state (a robot's estimate runs before
+    control starts); gain K [1/s]."""
+
+    def __init__(self, terms, r0, gain: float):
+        self.terms, self.gain, self.r = terms, float(gain), np.array(r0, dtype=float)
+        self._p0, self._M, self._integral = None, None, self.r / self.gain
+
+    def update(self, q, dq, tau_J, dt: float) -> np.ndarray:
+        """r after a state q, dq, tau_J (n,) dt [s] after the previous one (the first sets p0 and returns r0)."""
+        M, n = self.terms(q, dq)
+        if self._p0 is None:
+            self._p0 = M @ dq
+        else:
+            self._integral += dt * (tau_J - (n - (M - self._M) / dt @ dq) - self.r)
+            self.r = self.gain * (self._p0 + self._integral - M @ dq)
+        self._M = M
+        return self.r.copy()
 
 
 class PandaPyBackend:

@@ -112,6 +112,59 @@ def test_excitation_keeps_its_margin_speed_and_duration_from_random_start_poses(
         excitation(robot, q0, s)
 
 
+def test_excitation_about_another_centre_starts_at_the_start_and_is_the_centres_motion_after_the_rest():
+    """A start pose up to settings.max_shift from the centre (the reference's start, fresh draws): the set point starts
+    at q0, reaches the centre at rest by the end of the first rest within the speed limit, and from there on is the
+    motion about the centre to the sample; a start further away is refused naming the joint."""
+    rng, robot, s = np.random.default_rng(17), Robot.panda(), MotionSettings()
+    rest = int(round(s.rest * s.rate))
+    for _ in range(3):
+        center = Q_READY + rng.uniform(-0.3, 0.3, 7)
+        q0 = center + rng.uniform(-s.max_shift, s.max_shift, 7)
+        q, dq, ddq = excitation(robot, q0, s, center)
+        own = excitation(robot, center, s)
+        assert np.allclose(q[0], q0) and np.abs(dq[0]).max() < 1e-3 and np.abs(dq).max() <= s.max_speed * 1.01
+        assert np.allclose(q[rest - 1], center, atol=1e-9) and np.abs(dq[rest - 1]).max() < 1e-3
+        assert np.array_equal(q[rest + 1:], own[0][rest + 1:])
+    q0 = Q_READY.copy()
+    q0[3] += 1.5 * s.max_shift
+    with pytest.raises(ValueError, match="joint 4"):
+        excitation(robot, q0, s, Q_READY)
+
+
+def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_order_lag():
+    """robot.backends.MomentumObserver on panda.xml (the model) while MuJoCo moves panda.xml with a random tool added as
+    a body (the plant) under a spring and drawn torques (no joint limit reached): its r follows tau_x = tau_J - (M ddq + C dq + G) of the model at MuJoCo's
+    own accelerations (libfranka's sign: what the tool adds) through dr/dt = K (tau_x - r), within 1 %."""
+    from robot.backends import MomentumObserver
+    rng, robot = np.random.default_rng(23), Robot.panda()
+    tool = random_tool(rng)
+    R = np.array([[np.cos(-np.pi / 4), -np.sin(-np.pi / 4), 0], [np.sin(-np.pi / 4), np.cos(-np.pi / 4), 0], [0, 0, 1]])
+    c, I = R.T @ tool.com, R.T @ tool.inertia @ R              # the ee frame: F turned -45 deg about z
+    xml, marker = open(PANDA_XML).read(), '<site name="flange" pos="0 0 0.107" size="0.01"/>'
+    body = (f'<body name="tool" pos="0 0 0.107" axisangle="0 0 1 -0.7853981633974483"><inertial pos="{c[0]} {c[1]} '
+            f'{c[2]}" mass="{tool.mass}" fullinertia="{I[0, 0]} {I[1, 1]} {I[2, 2]} {I[0, 1]} {I[0, 2]} {I[1, 2]}"/></body>')
+    plant = mujoco.MjModel.from_xml_string(xml.replace(marker, marker + body))
+    data, dt, K = mujoco.MjData(plant), plant.opt.timestep, 100.0
+    data.qpos[:] = Q_READY
+    mujoco.mj_forward(plant, data)
+    terms = lambda q, dq: robot.terms(q, dq)[1:]
+    observer = MomentumObserver(terms, np.zeros(7), K)
+    lagged, phase = np.zeros(7), rng.uniform(0, 2 * np.pi, 7)
+    for k in range(1500):
+        q, dq = data.qpos.copy(), data.qvel.copy()
+        tau_J = robot.gravity(q) + 100.0 * (Q_READY - q) - 5.0 * dq + 2.0 * np.sin(2 * np.pi * 0.7 * k * dt + phase)
+        r = observer.update(q, dq, tau_J, dt)
+        data.qfrc_applied[:] = tau_J
+        mujoco.mj_step(plant, data)
+        _, M, b = robot.terms(q, dq)
+        tau_x = tau_J - (M @ data.qacc + b)                  # what moved the plant beyond the model
+        lagged += K * dt * (tau_x - lagged) if k else 0.0
+        if k > 300:
+            assert np.abs(r - lagged).max() <= 0.01 * np.abs(tau_x).max() + 1e-3, (k, r, lagged)
+    assert np.abs(lagged).max() > 1.0                        # the tool's torque is there to be followed
+
+
 def test_a_push_ends_the_run_within_its_stated_time():
     """A 25 N push on the hand at a drawn time and direction (fresh seeded draws, the realistic plant holding a random
     tool): confirmed within 50 ms of its start, and the run ends settings.stop_after later (the loop's last sample),
