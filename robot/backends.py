@@ -76,22 +76,30 @@ def _state_of(s, duration_s) -> State:
 
 
 class PylibfrankaBackend:
-    """pylibfranka: Robot(ip, RealtimeConfig), start_torque_control() -> readOnce() / writeOnce(Torques)."""
+    """pylibfranka: Robot(ip, RealtimeConfig), start_torque_control() -> readOnce() / writeOnce(Torques). Torque
+    control starts at the first read(), in the loop: from then on the robot applies only what the loop writes (a
+    tool missing from its model falls meanwhile: on franky-sim, starting it at connection left the tens of ms of
+    building the controller and warming the loop up before the first state, and a 1.4 kg tool dropped joint 4 at
+    0.13-0.22 rad/s by then; started here, 0.01-0.02 rad/s)."""
 
     def __init__(self, ip: str, realtime: bool = True, control: bool = True):
         plf = _need("pylibfranka", "pylibfranka")
-        self._plf, self._ctrl = plf, None
+        self._plf, self._ctrl, self._control, self._ip = plf, None, control, ip
         rt = plf.RealtimeConfig.kEnforce if realtime else plf.RealtimeConfig.kIgnore
         try:
             self.robot = plf.Robot(ip, rt)
             self.initial = _state_of(self.robot.read_once(), 1e-3)     # the state before control starts
-            if control:
-                self._ctrl = self.robot.start_torque_control()
         except Exception as err:
             raise RuntimeError(f"--robot-ip {ip}: no robot answered through pylibfranka "
                                f"({type(err).__name__}: {err})") from None
 
     def read(self) -> State:
+        if self._control and self._ctrl is None:
+            try:
+                self._ctrl = self.robot.start_torque_control()
+            except Exception as err:
+                raise RuntimeError(f"--robot-ip {self._ip}: torque control refused through pylibfranka "
+                                   f"({type(err).__name__}: {err})") from None
         if self._ctrl is None:
             return _state_of(self.robot.read_once(), 1e-3)
         s, d = self._ctrl.readOnce()
@@ -102,6 +110,7 @@ class PylibfrankaBackend:
             self._ctrl.writeOnce(self._plf.Torques([float(x) for x in cmd]))
 
     def stop(self):
+        self._control = False                          # no control is started after the loop
         if self._ctrl is not None:
             t = self._plf.Torques([0.0] * 7)
             t.motion_finished = True
@@ -117,7 +126,9 @@ class FrankySimBackend(PylibfrankaBackend):
     tau_J is the torque applied to the joints): read() replaces it with what libfranka's is, the torque of whatever
     the arm carries beyond its model, without "the mass and dynamics of the robot" (libfranka's RobotState): De Luca's
     momentum observer (MomentumObserver, gain `observer_gain`) on the simulated arm and hand (franky-sim's own MJCF,
-    its rotor inertia and damping, fingers at `finger` m each), started at the static estimate tau_J - G(q)."""
+    its rotor inertia and damping, fingers at `finger` m each), started at the first state's static estimate
+    tau_J - G(q) (franky-sim's first tau_J in torque control is its own gravity alone: the estimate then rises to
+    the tool's torque within about 3 / K, as the realistic plant's from zero; the push watch starts at 0.25 s)."""
 
     def __init__(self, ip: str, xml: str | None = None, finger: float = 0.04, observer_gain: float = 100.0,
                  **kwargs):     # xml: the sim's MJCF; observer_gain [1/s]: the realistic plant's (sim.PlantConfig)
