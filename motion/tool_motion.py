@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dynamics import Robot, as_states
+from motion.inertia import rigid_body
 
 WRIST = (4, 5, 6)                  # joints 5, 6, 7 (0-based): they turn the flange; the upper arm stays still
 
@@ -53,6 +54,11 @@ class MotionSettings:
     compensate: bool = True        # the watch's static fit Y phi + b is compensated: the arm follows the reference
     #                                alike with and without the tool (a 1 kg tool's weight otherwise sags joint 6 by
     #                                0.025 rad, and the arm's own pose-dependent error differs by that much)
+    feedforward: bool = True       # with the compensation, the watch's point mass's inertial torque along the
+    #                                reference (Y(q, dq, ddq_d) pi less its weight): the tool run then tracks the
+    #                                reference as the run without the tool does, so the drives' torques of the two
+    #                                runs' difference shrink (the tool's m d^2 about the wrist axes is most of what it
+    #                                adds to their inertia)
     settle: float = 0.25           # s: the watch starts after this (a momentum observer, K = 100 /s, and the first
     #                                commands settle; the reference is at rest until settings.rest)
     fade: float = 0.45             # s over which the compensation then fades in (the arm's whole static torque:
@@ -116,6 +122,17 @@ def _ramp(t, ramp, end):
     return 0.25 * (1 - np.cos(math.pi * up)) * (1 - np.cos(math.pi * down))
 
 
+def point_mass_inertial(robot: Robot, phi, q, dq, ddq) -> np.ndarray:
+    """(n,) tau_ext's sign: the inertial torque a point mass phi = (m, m c) (4,) (ee frame) applies at q, dq, ddq (n,):
+    the body regressor's less its weight's, Y(q, dq, ddq) pi - Y(q) phi, pi the point mass at c (none below 0.05 kg,
+    where c = m c / m is not known)."""
+    phi = np.asarray(phi, dtype=float)
+    if phi[0] < 0.05:
+        return np.zeros(robot.n)
+    pi = rigid_body(phi[0], phi[1:] / phi[0])
+    return robot.body_regressor(q, dq, ddq) @ pi - robot.payload_regressor(q) @ phi
+
+
 class PushWatch:
     """Whether tau_ext (paper sign) has left what the tool's weight predicts. H0, no contact: tau_ext = Y(q) phi + b
     + friction + the arm's own model error + the tool's small inertial torque; H1, a person pushes with F at the
@@ -134,6 +151,11 @@ class PushWatch:
         self.residual = np.zeros(n)                         # the last r (n,) [Nm]
         self.predicted = np.zeros(n)                        # the last Y phi + b (n,) [Nm] (0 before the watch starts)
         self.peak = np.zeros(n)                             # its largest |r| per joint so far
+
+    @property
+    def phi(self) -> np.ndarray:
+        """(4,) the fit's (m, m c) so far (ee frame, tau_ext's sign: the point mass whose weight it sees)."""
+        return self._phi.copy()
 
     def update(self, q, tau_ext) -> bool:
         """Feed one sample; True from the sample the push is confirmed on."""
@@ -208,5 +230,8 @@ class ExcitationController:
         if self.settings.compensate:                     # tau_ext's sign: the torque the tool applies, undone, faded
             fade = min(max((self.k - self.watch.start) / (self.settings.fade * self.settings.rate), 0.0), 1.0)
             tau = tau - fade * self.watch.predicted
+            if self._hold is None and self.settings.feedforward and fade > 0.0:
+                tau = tau - fade * point_mass_inertial(self.robot, self.watch.phi, q, dq,
+                                                       self.ddq_d[min(self.k, len(self.q_d) - 1)])
         self.k += 1
         return (tau if compensation is None else tau + compensation), None
