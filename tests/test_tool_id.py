@@ -88,6 +88,29 @@ def test_flange_frame_tool_matches_mujoco_with_the_tool_as_a_body(tmp_path):
             assert np.allclose(pred, extra, atol=1e-9), (pred, extra)
 
 
+def test_the_fed_forward_point_mass_torque_is_mujocos_inertial_torque_of_that_mass(tmp_path):
+    """motion.tool_motion.point_mass_inertial for a point mass phi = (m, m c) (what the push watch fits): minus the
+    inverse dynamics of panda.xml with that mass added as a body on the flange, less the model without it, less the
+    same at rest (its weight), at random states; and nothing below 0.05 kg."""
+    from dynamics import phi_of
+    from motion.tool_forms import EE_IN_F
+    from motion.tool_motion import point_mass_inertial
+    rng, robot = np.random.default_rng(29), Robot.panda()
+    for _ in range(3):
+        tool = make_tool(rng.uniform(0.4, 1.5), rng.uniform(-0.08, 0.08, 3), np.eye(3) * 1e-12)
+        m = _with_tool_body(tool, tmp_path / "with_point.xml")
+        d = mujoco.MjData(m)
+        phi = phi_of(np.array([tool.mass, *(EE_IN_F.T @ tool.com)]))      # the ee frame, as the watch's
+        q, dq, ddq = Q_READY + rng.uniform(-0.5, 0.5, 7), rng.normal(size=7), rng.normal(size=7)
+        extra = []
+        for v, a in ((dq, ddq), (np.zeros(7), np.zeros(7))):
+            d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
+            mujoco.mj_inverse(m, d)
+            extra.append(d.qfrc_inverse - robot.inverse_dynamics(q, v, a))
+        assert np.allclose(point_mass_inertial(robot, phi, q, dq, ddq), -(extra[0] - extra[1]), atol=1e-8)
+    assert not point_mass_inertial(robot, np.array([0.04, 0.0, 0.0, 0.002]), Q_READY, np.ones(7), np.ones(7)).any()
+
+
 @pytest.mark.parametrize("bad, match", [(dict(mass=-1.0), "mass"), (dict(com=[0, 0, 2.0]), "com"),
                                         (dict(inertia=np.diag([1e-3, 1e-3, 1e-2])), "inertia"),
                                         (dict(inertia=[[1e-3, 1e-4, 0], [0, 1e-3, 0], [0, 0, 1e-3]]), "inertia")])
