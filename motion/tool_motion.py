@@ -48,7 +48,7 @@ class MotionSettings:
     #                                10-20 ms, joints 1-4's 30-80 ms); the loop then ramps the command to zero and
     #                                hands the arm back to the robot (franka.run_loop's end)
     push: tuple = (2.5,) * 4 + (1.5,) * 3   # Nm per joint: |tau_ext - predicted| above this is a push (PushWatch:
-    #                                with nobody touching, 0.24-0.80 Nm measured on the realistic plant; a force at
+    #                                with nobody touching, 0.22-0.85 Nm measured on the realistic plant; a force at
     #                                the flange of 7-14 N, by its direction, crosses them at the ready pose)
     push_samples: int = 10         # consecutive samples (10 ms) above it (a single stale or noisy sample is not one)
     compensate: bool = True        # the watch's static fit Y phi + b is compensated: the arm follows the reference
@@ -62,9 +62,9 @@ class MotionSettings:
     settle: float = 0.25           # s: the watch starts after this (a momentum observer, K = 100 /s, and the first
     #                                commands settle; the reference is at rest until settings.rest)
     fade: float = 0.45             # s over which the compensation then fades in (the arm's whole static torque:
-    #                                the arm, sagged under the tool's weight at first, is lifted back within the rest;
-    #                                on franky-sim a 0.8 kg tool sagged joint 2 by 10 mrad, and lifting it back in
-    #                                0.2 s swung the arm enough for the watch to take it for a push, 2.7 Nm)
+    #                                the arm, sagged under the tool's weight at first, 3-8 mrad on joint 2 on the
+    #                                realistic plant, is lifted back within the rest, slowly: what the arm's model
+    #                                gets wrong of the lift's inertial torque stays in the watch's residual)
 
 
 def excitation(robot: Robot, q0, settings: MotionSettings = MotionSettings(), center=None):
