@@ -187,12 +187,13 @@ class PushWatch:
 class ExcitationController:
     """Tracks excitation(robot, q0) with tau = ID(q, dq, ddq_d) + Kp (q_d - q) + Kd (dq_d - dq) (the nominal model's
     inverse dynamics, a spring-damper to the moving reference: at 0.4 rad/s a person meets a spring, never a fast
-    arm), less the watch's fit of the static tau_ext (settings.compensate). On a push (PushWatch) the motion is
-    abandoned at once: the reference stops where the arm is, the spring drops to settings.soft of its stiffness and
-    the compensation keeps the fit of the samples before the push; settings.stop_after later `finished` says the run
-    is over (robot.loop.run_loop then ends it). step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's
-    controllers; after the reference it holds its last point; center: excitation's. abandoned: the time [s] of the push or None; pushed_joint:
-    the joint (1-based) furthest over its threshold when the push was confirmed, push_residual its r [Nm]."""
+    arm), less the watch's fit of the static tau_ext and its point mass's inertial torque along the reference
+    (settings.compensate, settings.feedforward). On a push (PushWatch) the motion is abandoned at once: the reference
+    stops where the arm is, the spring drops to settings.soft of its stiffness and the compensation keeps the fit of
+    the samples before the push; settings.stop_after later `finished` says the run is over (robot.loop.run_loop then
+    ends it). step(q, dq, compensation, tau_ext) -> (tau (n,), None) as cpic's controllers; after the reference it
+    holds its last point; center: excitation's. abandoned: the time [s] of the push or None; pushed_joint: the joint
+    (1-based) furthest over its threshold when the push was confirmed, push_residual its r [Nm]."""
 
     def __init__(self, robot: Robot, q0, settings: MotionSettings = MotionSettings(), center=None):
         self.robot, self.settings = robot, settings

@@ -121,10 +121,10 @@ def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0
 
 
 @contextlib.contextmanager
-def _server(options, hostname: str, max_seconds: float, start_timeout: float, ready_line: str = "Connect to the server"):
+def _server(options, hostname: str, max_seconds: float, start_timeout: float,
+            ready_line: str = "Connect to the server"):
     """This module's server (frictionless, `options` added) on `hostname` in its own process, until it prints
-    `ready_line`
-    (clients may connect; with a tool: the arm has come to rest holding it) (RuntimeError if not within
+    `ready_line` (clients may connect; with a tool: the arm has come to rest holding it) (RuntimeError if not within
     start_timeout or 200 lines); stopped by its own pid on leaving."""
     server = subprocess.Popen([sys.executable, "-m", "robot.franky_load", "--hostname", hostname, *options,
                                "--frictionless", "--max-seconds", str(max_seconds)],
@@ -168,7 +168,8 @@ def identify_client(tool=None, seconds=None, hostname: str = "127.0.0.1", start_
         I = R.T @ tool.inertia @ R
         options = ["--tool", str(tool.mass), *map(str, R.T @ tool.com), *map(str, I[np.triu_indices(3)])]
     robot = Robot.panda()
-    with _server(options, hostname, 600.0, start_timeout, "Connect to the server" if tool is None else "tool settled"):
+    ready = "Connect to the server" if tool is None else "tool settled"     # with a tool: the arm at rest holding it
+    with _server(options, hostname, 600.0, start_timeout, ready):
         backend = FrankySimBackend(hostname, realtime=False)
         limits = backend.joint_limits()
         log, summary, controller = run_motion(backend, robot, run_loop, seconds=seconds, center=center)
