@@ -197,6 +197,12 @@ def franka_identify(args, run_loop, make_backend) -> int:
             print(f"franka.py: not started: {err}", file=sys.stderr)
             return 2
     center = None if reference is None else reference.q[0]        # the reference's start: the same motion
+    shift = 0.0 if center is None else np.abs(center - backend.initial.q)
+    if np.max(shift) > MotionSettings().max_shift:                # refused before any control starts
+        j = int(np.argmax(shift))
+        raise ValueError(f"--reference: expected its start pose within {MotionSettings().max_shift} rad of the arm's "
+                         f"on every joint, found joint {j + 1} {shift[j]:.3f} rad away: move the arm to the "
+                         f"reference's start pose or record the reference again here")
     log, summary, _ = run_motion(backend, robot, run_loop, center=center)
     abandoned = summary["abandoned_at_s"]
     if args.log:                                       # an abandoned motion's log says so (refused as a reference)

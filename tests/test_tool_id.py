@@ -155,10 +155,27 @@ def test_excitation_about_another_centre_starts_at_the_start_and_is_the_centres_
         excitation(robot, q0, s, Q_READY)
 
 
+def test_identify_refuses_a_reference_started_elsewhere_before_any_motion(tmp_path, monkeypatch):
+    """franka.py --identify --reference REF whose start pose lies further than max_shift from the arm's (joint 4, a
+    seeded draw of 1.5-3 times the limit): ValueError naming --reference and the joint, and no motion run."""
+    rng, s = np.random.default_rng(31), MotionSettings()
+    q = np.tile(np.asarray(franka.Q_START), (2000, 1)) + rng.normal(0, 1e-5, (2000, 7))
+    q[:, 3] += rng.uniform(1.5, 3.0) * s.max_shift * rng.choice([-1.0, 1.0])
+    path = tmp_path / "empty.npz"
+    np.savez(path, t=np.arange(2000) * 1e-3, q=q, dq=rng.normal(0, 1e-3, (2000, 7)),
+             tau_J=rng.normal(0, 0.01, (2000, 7)))
+    import robot.identify as identify
+    monkeypatch.setattr(identify, "run_motion", lambda *a, **k: pytest.fail("a motion was run"))
+    with pytest.raises(ValueError, match="--reference.*joint 4"):
+        franka.main(["--identify", "--sim", "--reference", str(path), "--sim-tool", "0.8", "0.02", "0.04", "0.07",
+                     "0.004", "0.003", "0.005"])
+
+
 def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_order_lag():
     """robot.backends.MomentumObserver on panda.xml (the model) while MuJoCo moves panda.xml with a random tool added as
-    a body (the plant) under a spring and drawn torques (no joint limit reached): its r follows tau_x = tau_J - (M ddq + C dq + G) of the model at MuJoCo's
-    own accelerations (libfranka's sign: what the tool adds) through dr/dt = K (tau_x - r), within 1 %."""
+    a body (the plant) under a spring and drawn torques (no joint limit reached): its r follows tau_x = tau_J - (M ddq
+    + C dq + G) of the model at MuJoCo's own accelerations (libfranka's sign: what the tool adds) through
+    dr/dt = K (tau_x - r), within 1 %."""
     from robot.backends import MomentumObserver
     rng, robot = np.random.default_rng(23), Robot.panda()
     tool = random_tool(rng)
@@ -166,7 +183,8 @@ def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_or
     c, I = R.T @ tool.com, R.T @ tool.inertia @ R              # the ee frame: F turned -45 deg about z
     xml, marker = open(PANDA_XML).read(), '<site name="flange" pos="0 0 0.107" size="0.01"/>'
     body = (f'<body name="tool" pos="0 0 0.107" axisangle="0 0 1 -0.7853981633974483"><inertial pos="{c[0]} {c[1]} '
-            f'{c[2]}" mass="{tool.mass}" fullinertia="{I[0, 0]} {I[1, 1]} {I[2, 2]} {I[0, 1]} {I[0, 2]} {I[1, 2]}"/></body>')
+            f'{c[2]}" mass="{tool.mass}" fullinertia="{I[0, 0]} {I[1, 1]} {I[2, 2]} {I[0, 1]} {I[0, 2]} '
+            f'{I[1, 2]}"/></body>')
     plant = mujoco.MjModel.from_xml_string(xml.replace(marker, marker + body))
     data, dt, K = mujoco.MjData(plant), plant.opt.timestep, 100.0
     data.qpos[:] = Q_READY
