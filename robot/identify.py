@@ -166,6 +166,19 @@ def _refuse_abandoned(path, name: str):
                          f"({path!r}): rerun it untouched")
 
 
+def _start_of(reference, q, settings: MotionSettings = MotionSettings()) -> np.ndarray:
+    """The reference's start pose (n,), the tool run's centre; ValueError naming --reference and the joint when it
+    lies further than settings.max_shift from the arm's pose q (n,) (refused before any control starts)."""
+    center = reference.q[0]
+    shift = np.abs(center - q)
+    if shift.max() > settings.max_shift:
+        j = int(np.argmax(shift))
+        raise ValueError(f"--reference: expected its start pose within {settings.max_shift} rad of the arm's on every "
+                         f"joint, found joint {j + 1} {shift[j]:.3f} rad away: move the arm to the reference's start "
+                         f"pose or record the reference again here")
+    return center
+
+
 def franka_identify(args, run_loop, make_backend) -> int:
     """franka.py --identify: with --sim, a reference motion with the flange empty and then the motion with the tool
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
@@ -196,13 +209,7 @@ def franka_identify(args, run_loop, make_backend) -> int:
         except RuntimeError as err:
             print(f"franka.py: not started: {err}", file=sys.stderr)
             return 2
-    center = None if reference is None else reference.q[0]        # the reference's start: the same motion
-    shift = 0.0 if center is None else np.abs(center - backend.initial.q)
-    if np.max(shift) > MotionSettings().max_shift:                # refused before any control starts
-        j = int(np.argmax(shift))
-        raise ValueError(f"--reference: expected its start pose within {MotionSettings().max_shift} rad of the arm's "
-                         f"on every joint, found joint {j + 1} {shift[j]:.3f} rad away: move the arm to the "
-                         f"reference's start pose or record the reference again here")
+    center = None if reference is None else _start_of(reference, backend.initial.q)   # the same motion
     log, summary, _ = run_motion(backend, robot, run_loop, center=center)
     abandoned = summary["abandoned_at_s"]
     if args.log:                                       # an abandoned motion's log says so (refused as a reference)
