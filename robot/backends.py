@@ -222,7 +222,8 @@ class PandaPyBackend:
     command answering an older state is never taken for the answer to a newer one (the loop would stay a cycle
     behind for good after a single late cycle).
     control=False (dry run) only reads states (Panda.get_state). panda: a connected panda_py.Panda (or anything with
-    its get_robot() and get_state()) to use instead of connecting to ip."""
+    its get_robot() and get_state()) to use instead of connecting to ip. Control starts at the first read(), in the
+    loop (as PylibfrankaBackend's: until the loop answers, the robot gets zero torque beyond its model)."""
 
     def __init__(self, ip: str, control: bool = True, timeout: float = 0.9e-3, panda=None):
         panda_py = _need("panda_py", "panda-py")
@@ -237,10 +238,7 @@ class PandaPyBackend:
         self._lf, self._timeout, self._control = libfranka, timeout, control
         self._states, self._cmds = queue.Queue(maxsize=1), queue.Queue(maxsize=1)
         self._last, self._done, self._error = [0.0] * 7, threading.Event(), None
-        self._seq, self._read = 0, 0                   # states sent by the callback; the one the loop read last
-        if control:
-            self._thread = threading.Thread(target=self._run, daemon=True)
-            self._thread.start()
+        self._seq, self._read, self._thread = 0, 0, None   # states sent by the callback; the one the loop read last
 
     def _run(self):
         def callback(state, duration):
@@ -270,6 +268,9 @@ class PandaPyBackend:
     def read(self) -> State:
         if not self._control:
             return _state_of(self.panda.get_state(), 1e-3)
+        if self._thread is None and not self._done.is_set():
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
         while True:
             if self._error is not None or (self._done.is_set() and self._states.empty()):
                 raise RuntimeError(f"panda-python control ended: {self._error}")
@@ -289,7 +290,7 @@ class PandaPyBackend:
 
     def stop(self):
         self._done.set()
-        if self._control:
+        if self._thread is not None:
             self._thread.join(timeout=1.0)
 
 
