@@ -155,8 +155,9 @@ def identify_client(tool=None, seconds=None, hostname: str = "127.0.0.1", start_
                     center=None):
     """The tool identification's motion (robot.identify.run_motion, about `center`: the reference run's start)
     through pylibfranka against this module's server, started frictionless with the Tool `tool` (flange frame F,
-    motion.tool_forms) fused into the simulated hand (none: the flange as it is, the reference run). Returns run_motion's (log, summary, controller) and the
-    server's own joint limits (7, 2) [rad] (franky-sim simulates an FR3, whose limits are not the Panda's)."""
+    motion.tool_forms) fused into the simulated hand (none: the flange as it is, the reference run). Returns
+    run_motion's (log, summary, controller) and the server's own joint limits (7, 2) [rad] (franky-sim simulates an
+    FR3, whose limits are not the Panda's)."""
     from dynamics import Robot
     from motion.tool_forms import EE_IN_F
     from robot.backends import FrankySimBackend
