@@ -37,7 +37,7 @@ def one(robot, seed: int, tool, preset: str) -> dict:
     ref = run_motion(sim_backend(seed, None, 0, preset), robot, franka.run_loop)[0]
     backend = sim_backend(seed, tool, 1, preset)
     q0 = backend.initial.q
-    log, summary, _ = run_motion(backend, robot, franka.run_loop)
+    log, summary, _ = run_motion(backend, robot, franka.run_loop, center=ref["q"][0])
     truth, row = truth_of(tool), {"seed": seed, "truth": truth_of(tool), "motion": {
         k: summary[k] for k in ("seconds", "abandoned_at_s", "max_abs_dq", "min_limit_distance_rad",
                                  "push_watch_peak_Nm")}}

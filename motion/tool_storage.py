@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from dynamics import Q_READY
+from dynamics import Q_READY, phi_of
 from motion.tool_forms import EE_IN_F, Tool
-from motion.tool_motion import ExcitationController, MotionSettings
+from motion.tool_motion import ExcitationController, MotionSettings, point_mass_inertial
 
 
 @dataclass(frozen=True)
@@ -33,10 +33,11 @@ def storage_check(tool: Tool, q0=Q_READY, settings: MotionSettings = MotionSetti
     the weight of `compensated` cancelled instead of the push watch's fit (default `tool` itself: exact, Prop. 4.1's
     premise Delta F_mm = 0; another tool shows what a wrong compensation feeds in). The
     controller's torque (ExcitationController) is
-        tau = G + tau_w + [M ddq_d + C dq + Kd dq_d] + Kp (q_d - q) - Kd dq,
-    the bracket the set point's drive tau_sp, the rest a spring about q_d (stored in S) and a damper. With S =
-    1/2 dq^T M dq + 1/2 (q - q_d)^T Kp (q - q_d) (M: the plant's own, tool included, from MuJoCo), over each step k
-    at the set point of step k: rise_k = S(x_k+1) - S(x_k) - (q_k+1 - q_k)^T tau_sp,k; moving the set point from
+        tau = G + tau_w + [M ddq_d + C dq + tau_f + Kd dq_d] + Kp (q_d - q) - Kd dq,
+    tau_f the compensated tool's point mass's inertial torque along the reference (settings.feedforward, as the
+    watch's point mass in the motion), the bracket the set point's drive tau_sp, the rest a spring about q_d (stored
+    in S) and a damper. With S = 1/2 dq^T M dq + 1/2 (q - q_d)^T Kp (q - q_d) (M: the plant's own, tool included,
+    from MuJoCo), over each step k at the set point of step k: rise_k = S(x_k+1) - S(x_k) - (q_k+1 - q_k)^T tau_sp,k; moving the set point from
     q_d,k to q_d,k+1 adds its work on the spring. tolerance [J]: rounding and the 1 ms step (a spring held over a
     step of 0.4 mrad stores 1/2 Kp dq^2 dt^2, 4e-6 J at 50 Nm/rad). seconds: default the whole motion."""
     from sim import Plant                               # the simulator (a heavy import) only when a check runs
@@ -45,6 +46,7 @@ def storage_check(tool: Tool, q0=Q_READY, settings: MotionSettings = MotionSetti
     plant.set_payload(tool.mass, R.T @ tool.com, R.T @ tool.inertia @ R)
     c = tool if compensated is None else compensated
     robot, theta = plant.robot, np.array([c.mass, *(R.T @ c.com)])
+    phi = phi_of(theta)                                 # its point mass's inertial torque fed forward, as the watch's
     ctrl = ExcitationController(robot, q0, dataclasses.replace(settings, compensate=False))
     steps = int(round((ctrl.duration if seconds is None else seconds) * settings.rate))
     kp, kd = ctrl.kp, ctrl.kd
@@ -62,8 +64,9 @@ def storage_check(tool: Tool, q0=Q_READY, settings: MotionSettings = MotionSetti
     for k in range(steps):
         i, j = min(k, len(ctrl.q_d) - 1), min(k + 1, len(ctrl.q_d) - 1)
         q, dq = s.q.copy(), s.dq.copy()
-        tau, _ = ctrl.step(q, dq, -robot.payload_torque(q, theta))
-        tau_sp = robot.inverse_dynamics(q, dq, ctrl.ddq_d[i]) - robot.gravity(q) + kd * ctrl.dq_d[i]
+        ff = -point_mass_inertial(robot, phi, q, dq, ctrl.ddq_d[i]) if settings.feedforward else 0.0
+        tau, _ = ctrl.step(q, dq, -robot.payload_torque(q, theta) + ff)
+        tau_sp = robot.inverse_dynamics(q, dq, ctrl.ddq_d[i]) - robot.gravity(q) + kd * ctrl.dq_d[i] + ff
         s = plant.step(tau)
         dq_step = s.q - q
         rise = max(rise, S(s.q, s.dq, ctrl.q_d[i]) - S(q, dq, ctrl.q_d[i]) - dq_step @ tau_sp)

@@ -76,22 +76,30 @@ def _state_of(s, duration_s) -> State:
 
 
 class PylibfrankaBackend:
-    """pylibfranka: Robot(ip, RealtimeConfig), start_torque_control() -> readOnce() / writeOnce(Torques)."""
+    """pylibfranka: Robot(ip, RealtimeConfig), start_torque_control() -> readOnce() / writeOnce(Torques). Torque
+    control starts at the first read(), in the loop: from then on the robot applies only what the loop writes (a
+    tool missing from its model falls meanwhile: on franky-sim, starting it at connection left the tens of ms of
+    building the controller and warming the loop up before the first state, and a 1.4 kg tool dropped joint 4 at
+    0.13-0.22 rad/s by then; started here, 0.01-0.02 rad/s)."""
 
     def __init__(self, ip: str, realtime: bool = True, control: bool = True):
         plf = _need("pylibfranka", "pylibfranka")
-        self._plf, self._ctrl = plf, None
+        self._plf, self._ctrl, self._control, self._ip = plf, None, control, ip
         rt = plf.RealtimeConfig.kEnforce if realtime else plf.RealtimeConfig.kIgnore
         try:
             self.robot = plf.Robot(ip, rt)
             self.initial = _state_of(self.robot.read_once(), 1e-3)     # the state before control starts
-            if control:
-                self._ctrl = self.robot.start_torque_control()
         except Exception as err:
             raise RuntimeError(f"--robot-ip {ip}: no robot answered through pylibfranka "
                                f"({type(err).__name__}: {err})") from None
 
     def read(self) -> State:
+        if self._control and self._ctrl is None:
+            try:
+                self._ctrl = self.robot.start_torque_control()
+            except Exception as err:
+                raise RuntimeError(f"--robot-ip {self._ip}: torque control refused through pylibfranka "
+                                   f"({type(err).__name__}: {err})") from None
         if self._ctrl is None:
             return _state_of(self.robot.read_once(), 1e-3)
         s, d = self._ctrl.readOnce()
@@ -102,6 +110,7 @@ class PylibfrankaBackend:
             self._ctrl.writeOnce(self._plf.Torques([float(x) for x in cmd]))
 
     def stop(self):
+        self._control = False                          # no control is started after the loop
         if self._ctrl is not None:
             t = self._plf.Torques([0.0] * 7)
             t.motion_finished = True
@@ -113,12 +122,16 @@ class PylibfrankaBackend:
 
 
 class FrankySimBackend(PylibfrankaBackend):
-    """pylibfranka against franky-sim, which reports tau_ext_hat_filtered = tau_J (no external-torque estimate):
-    read() replaces it with what libfranka's would be with the hand configured in Desk, tau_J - G(q), G the
-    gravity of the simulated arm and hand (franky-sim's own MJCF, fingers at `finger` m each) at the measured q.
-    At rest that is the torque of whatever the arm carries beyond its model (libfranka's sign)."""
+    """pylibfranka against franky-sim, which reports tau_ext_hat_filtered = tau_J (no external-torque estimate; its
+    tau_J is the torque applied to the joints): read() replaces it with what libfranka's is, the torque of whatever
+    the arm carries beyond its model, without "the mass and dynamics of the robot" (libfranka's RobotState): De Luca's
+    momentum observer (MomentumObserver, gain `observer_gain`) on the simulated arm and hand (franky-sim's own MJCF,
+    its rotor inertia and damping, fingers at `finger` m each), started at the first state's static estimate
+    tau_J - G(q) (franky-sim's first tau_J in torque control is its own gravity alone: the estimate then rises to
+    the tool's torque within about 3 / K, as the realistic plant's from zero; the push watch starts at 0.25 s)."""
 
-    def __init__(self, ip: str, xml: str | None = None, finger: float = 0.04, **kwargs):     # xml: the sim's MJCF
+    def __init__(self, ip: str, xml: str | None = None, finger: float = 0.04, observer_gain: float = 100.0,
+                 **kwargs):     # xml: the sim's MJCF; observer_gain [1/s]: the realistic plant's (sim.PlantConfig)
         import mujoco
         if xml is None:
             import franky_sim
@@ -138,6 +151,7 @@ class FrankySimBackend(PylibfrankaBackend):
         for j in fingers:
             if j >= 0:
                 self._data.qpos[self._model.jnt_qposadr[j]] = finger
+        self._gain, self._observer = float(observer_gain), None
         super().__init__(ip, **kwargs)
 
     def joint_limits(self) -> np.ndarray:
@@ -156,10 +170,49 @@ class FrankySimBackend(PylibfrankaBackend):
         mj.mj_rne(m, d, 0, out)
         return out[self._dof_adr]
 
+    def terms(self, q, dq):
+        """M(q) (7, 7) with the rotors' inertia and n = C dq + G + the joints' damping (7,) of the simulated arm."""
+        m, d, mj, a = self._model, self._data, self._mj, self._dof_adr
+        d.qpos[self._q_adr], d.qvel[:] = q, 0.0
+        d.qvel[a] = dq
+        mj.mj_kinematics(m, d)
+        mj.mj_comPos(m, d)
+        mj.mj_makeM(m, d)
+        mj.mj_comVel(m, d)
+        M, n = np.zeros((m.nv, m.nv)), np.empty(m.nv)
+        mj.mj_fullM(m, d, M)
+        mj.mj_rne(m, d, 0, n)
+        return M[np.ix_(a, a)], n[a] + m.dof_damping[a] * dq
+
     def read(self) -> State:
         s = super().read()
-        s.tau_ext_hat_filtered = s.tau_J - self.gravity(s.q)
+        if self._observer is None:
+            self._observer = MomentumObserver(self.terms, s.tau_J - self.gravity(s.q), self._gain)
+        s.tau_ext_hat_filtered = self._observer.update(s.q, s.dq, s.tau_J, max(float(s.duration_s), 1e-3))
         return s
+
+
+class MomentumObserver:
+    """De Luca's momentum observer in libfranka's sign: r (n,) follows tau_x = tau_J - (M ddq + n) (what acts on the
+    joints beyond the model) as dr/dt = K (tau_x - r), from q, dq, tau_J alone: r = K (p0 + sum dt (tau_J - n' - r)
+    - p), p = M dq, n' = n - Mdot dq (Mdot by the step's difference; De Luca et al. 2006, as sim.Plant's in the
+    paper's sign). terms(q, dq) -> (M (n, n), n (n,)); r0: r at the first state (a robot's estimate runs before
+    control starts); gain K [1/s]."""
+
+    def __init__(self, terms, r0, gain: float):
+        self.terms, self.gain, self.r = terms, float(gain), np.array(r0, dtype=float)
+        self._p0, self._M, self._integral = None, None, self.r / self.gain
+
+    def update(self, q, dq, tau_J, dt: float) -> np.ndarray:
+        """r after a state q, dq, tau_J (n,) dt [s] after the previous one (the first sets p0 and returns r0)."""
+        M, n = self.terms(q, dq)
+        if self._p0 is None:
+            self._p0 = M @ dq
+        else:
+            self._integral += dt * (tau_J - (n - (M - self._M) / dt @ dq) - self.r)
+            self.r = self.gain * (self._p0 + self._integral - M @ dq)
+        self._M = M
+        return self.r.copy()
 
 
 class PandaPyBackend:
@@ -169,7 +222,8 @@ class PandaPyBackend:
     command answering an older state is never taken for the answer to a newer one (the loop would stay a cycle
     behind for good after a single late cycle).
     control=False (dry run) only reads states (Panda.get_state). panda: a connected panda_py.Panda (or anything with
-    its get_robot() and get_state()) to use instead of connecting to ip."""
+    its get_robot() and get_state()) to use instead of connecting to ip. Control starts at the first read(), in the
+    loop (as PylibfrankaBackend's: until the loop answers, the robot gets zero torque beyond its model)."""
 
     def __init__(self, ip: str, control: bool = True, timeout: float = 0.9e-3, panda=None):
         panda_py = _need("panda_py", "panda-py")
@@ -184,10 +238,7 @@ class PandaPyBackend:
         self._lf, self._timeout, self._control = libfranka, timeout, control
         self._states, self._cmds = queue.Queue(maxsize=1), queue.Queue(maxsize=1)
         self._last, self._done, self._error = [0.0] * 7, threading.Event(), None
-        self._seq, self._read = 0, 0                   # states sent by the callback; the one the loop read last
-        if control:
-            self._thread = threading.Thread(target=self._run, daemon=True)
-            self._thread.start()
+        self._seq, self._read, self._thread = 0, 0, None   # states sent by the callback; the one the loop read last
 
     def _run(self):
         def callback(state, duration):
@@ -217,6 +268,9 @@ class PandaPyBackend:
     def read(self) -> State:
         if not self._control:
             return _state_of(self.panda.get_state(), 1e-3)
+        if self._thread is None and not self._done.is_set():
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
         while True:
             if self._error is not None or (self._done.is_set() and self._states.empty()):
                 raise RuntimeError(f"panda-python control ended: {self._error}")
@@ -236,7 +290,7 @@ class PandaPyBackend:
 
     def stop(self):
         self._done.set()
-        if self._control:
+        if self._thread is not None:
             self._thread.join(timeout=1.0)
 
 

@@ -18,6 +18,10 @@ import mujoco
 import numpy as np
 
 
+SETTLE_TICKS = 1000     # 1 ms ticks after the tool is fused before a client is let in: the server's own hold (kp/kv
+#                         = 10 /s on every joint, franky-sim's MuJoCo gains) has the arm at rest again within 1 s
+
+
 def add_point_mass(model: mujoco.MjModel, body: int, m: float, r, inertia=None) -> None:
     """Fuse a point mass m [kg] at r (3,) [m] (body frame), or a body of that mass and CoM with `inertia` (3, 3)
     [kg m^2] about its CoM (body frame), into the body's inertial: new mass, CoM and inertia about the new CoM
@@ -117,9 +121,11 @@ def run_client(seconds: float = 5.0, at: int = 1500, mass: float = 1.0, com=(0.0
 
 
 @contextlib.contextmanager
-def _server(options, hostname: str, max_seconds: float, start_timeout: float):
-    """This module's server (frictionless, `options` added) on `hostname` in its own process, until it says clients
-    may connect (RuntimeError if not within start_timeout or 200 lines); stopped by its own pid on leaving."""
+def _server(options, hostname: str, max_seconds: float, start_timeout: float,
+            ready_line: str = "Connect to the server"):
+    """This module's server (frictionless, `options` added) on `hostname` in its own process, until it prints
+    `ready_line` (clients may connect; with a tool: the arm has come to rest holding it) (RuntimeError if not within
+    start_timeout or 200 lines); stopped by its own pid on leaving."""
     server = subprocess.Popen([sys.executable, "-m", "robot.franky_load", "--hostname", hostname, *options,
                                "--frictionless", "--max-seconds", str(max_seconds)],
                               cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
@@ -128,7 +134,7 @@ def _server(options, hostname: str, max_seconds: float, start_timeout: float):
         t0, ready = time.monotonic(), False
         for _ in range(200):                                  # bounded: 200 lines or start_timeout
             line = server.stdout.readline()
-            if "Connect to the server" in line:
+            if ready_line in line:
                 ready = True
                 break
             if not line or time.monotonic() - t0 > start_timeout:
@@ -145,11 +151,13 @@ def _server(options, hostname: str, max_seconds: float, start_timeout: float):
             server.wait(timeout=10)
 
 
-def identify_client(tool=None, seconds=None, hostname: str = "127.0.0.1", start_timeout: float = 60.0):
-    """The tool identification's motion (robot.identify.run_motion) through pylibfranka against this module's
-    server, started frictionless with the Tool `tool` (flange frame F, motion.tool_forms) fused into the simulated
-    hand (none: the flange as it is, the reference run). Returns run_motion's (log, summary, controller) and the
-    server's own joint limits (7, 2) [rad] (franky-sim simulates an FR3, whose limits are not the Panda's)."""
+def identify_client(tool=None, seconds=None, hostname: str = "127.0.0.1", start_timeout: float = 60.0,
+                    center=None):
+    """The tool identification's motion (robot.identify.run_motion, about `center`: the reference run's start)
+    through pylibfranka against this module's server, started frictionless with the Tool `tool` (flange frame F,
+    motion.tool_forms) fused into the simulated hand (none: the flange as it is, the reference run). Returns
+    run_motion's (log, summary, controller) and the server's own joint limits (7, 2) [rad] (franky-sim simulates an
+    FR3, whose limits are not the Panda's)."""
     from dynamics import Robot
     from motion.tool_forms import EE_IN_F
     from robot.backends import FrankySimBackend
@@ -161,10 +169,11 @@ def identify_client(tool=None, seconds=None, hostname: str = "127.0.0.1", start_
         I = R.T @ tool.inertia @ R
         options = ["--tool", str(tool.mass), *map(str, R.T @ tool.com), *map(str, I[np.triu_indices(3)])]
     robot = Robot.panda()
-    with _server(options, hostname, 600.0, start_timeout):
+    ready = "Connect to the server" if tool is None else "tool settled"     # with a tool: the arm at rest holding it
+    with _server(options, hostname, 600.0, start_timeout, ready):
         backend = FrankySimBackend(hostname, realtime=False)
         limits = backend.joint_limits()
-        log, summary, controller = run_motion(backend, robot, run_loop, seconds=seconds)
+        log, summary, controller = run_motion(backend, robot, run_loop, seconds=seconds, center=center)
     return log, summary, controller, limits
 
 
@@ -202,7 +211,7 @@ def main(argv=None) -> int:
         tool = make_tool(args.tool[0], args.tool[1:4], I + np.triu(I, 1).T, "--tool")   # checked: physical
     import franky_sim
     from franky_sim.mujoco_simulator import MujocoSimulator
-    asked, ticks, ready, fused = [False], [0], [], []
+    asked, ticks, ready, fused, fused_at = [False], [0], [], [], [-SETTLE_TICKS - 1]
     signal.signal(signal.SIGUSR1, lambda *_: asked.__setitem__(0, True))
     with MujocoSimulator() as sim:
         sim.add_robot()
@@ -219,7 +228,9 @@ def main(argv=None) -> int:
             if fused and fused[0] is not None:
                 apply_load(s.model, fused[0])
                 print(f"tool fused: {args.tool} (hand frame), tick {ticks[0]}", flush=True)
-                fused[0] = None
+                fused[0], fused_at[0] = None, ticks[0]
+            if ticks[0] == fused_at[0] + SETTLE_TICKS:
+                print(f"tool settled: the arm held it for {SETTLE_TICKS} ticks, tick {ticks[0]}", flush=True)
             if asked[0] and ready:
                 asked[0] = False
                 apply_load(s.model, ready[0])

@@ -48,10 +48,12 @@ def sim_backend(seed: int, tool=None, run: int = 0, preset: str = "realistic"):
     return backend
 
 
-def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings(), seconds=None):
-    """The excitation about backend.initial.q through robot.loop.run_loop (for `seconds`, default: all of it; a push
+def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = MotionSettings(), seconds=None,
+               center=None):
+    """The excitation from backend.initial.q about `center` (default: there; the tool run: the reference run's
+    start, so both runs are the same motion) through robot.loop.run_loop (for `seconds`, default: all of it; a push
     ends it settings.stop_after after the push): (log arrays, summary, controller)."""
-    controller = ExcitationController(robot, backend.initial.q, settings)
+    controller = ExcitationController(robot, backend.initial.q, settings, center)
     seconds = controller.duration if seconds is None else seconds
     summary, log = run_loop(backend, robot, controller, None, seconds, print_every=np.inf)
     summary["abandoned_at_s"] = controller.abandoned
@@ -164,6 +166,19 @@ def _refuse_abandoned(path, name: str):
                          f"({path!r}): rerun it untouched")
 
 
+def _start_of(reference, q, settings: MotionSettings = MotionSettings()) -> np.ndarray:
+    """The reference's start pose (n,), the tool run's centre; ValueError naming --reference and the joint when it
+    lies further than settings.max_shift from the arm's pose q (n,) (refused before any control starts)."""
+    center = reference.q[0]
+    shift = np.abs(center - q)
+    if shift.max() > settings.max_shift:
+        j = int(np.argmax(shift))
+        raise ValueError(f"--reference: expected its start pose within {settings.max_shift} rad of the arm's on every "
+                         f"joint, found joint {j + 1} {shift[j]:.3f} rad away: move the arm to the reference's start "
+                         f"pose or record the reference again here")
+    return center
+
+
 def franka_identify(args, run_loop, make_backend) -> int:
     """franka.py --identify: with --sim, a reference motion with the flange empty and then the motion with the tool
     of --sim-tool on the same simulated robot; on a robot, the motion with --reference FILE (an earlier --identify
@@ -194,14 +209,16 @@ def franka_identify(args, run_loop, make_backend) -> int:
         except RuntimeError as err:
             print(f"franka.py: not started: {err}", file=sys.stderr)
             return 2
-    log, summary, _ = run_motion(backend, robot, run_loop)
+    center = None if reference is None else _start_of(reference, backend.initial.q)   # the same motion
+    log, summary, _ = run_motion(backend, robot, run_loop, center=center)
     abandoned = summary["abandoned_at_s"]
     if args.log:                                       # an abandoned motion's log says so (refused as a reference)
         np.savez(args.log, **log, tau_ext_sign="paper", abandoned_at_s=np.nan if abandoned is None else abandoned)
     if abandoned is not None:
         return _emit_abandoned(summary, args, "tool" if args.sim else "identification")
     fit = fit_logs(robot, prepared(log), reference)
-    summary["storage"] = dataclasses.asdict(storage_check(fit.tool, backend.initial.q))   # this motion, this tool
+    start = backend.initial.q if center is None else center
+    summary["storage"] = dataclasses.asdict(storage_check(fit.tool, start))   # this motion, this tool
     return _emit(report(fit, truth, summary), args, fit)
 
 

@@ -115,19 +115,23 @@ def test_the_identification_on_franky_sim_recovers_a_tool_fused_into_its_hand():
     motion with the flange as it is (the reference) and again with a fresh random tool of the targets' range fused
     into the hand (robot.franky_load --tool, full inertia): mass within 1 % or 10 g and each CoM axis within 3 mm
     of the tool (flange frame F), the motion at most 20 s, below 0.5 rad/s, at least 0.2 rad from the server's own
-    joint limits, and no push taken where there was none."""
+    joint limits, and no push taken where there was none: the push watch's largest residual within half its
+    thresholds."""
     pytest.importorskip("pylibfranka")
     pytest.importorskip("franky_sim")
     from experiments.tool_bench import draw_tool
+    from motion.tool_motion import MotionSettings
     from motion.tool_id import truth_of
     from robot.franky_load import identify_client
     from robot.identify import fit_logs, prepared
     tool = draw_tool(np.random.default_rng(8))
-    runs = [identify_client(t) for t in (None, tool)]
+    runs = [identify_client(None)]
+    runs.append(identify_client(tool, center=runs[0][0]["q"][0]))     # about the reference's start, as franka.py
     for log, summary, _, limits in runs:
         assert summary["abandoned_at_s"] is None and summary["seconds"] <= 20.0 + 1e-6
         assert np.abs(log["dq"]).max() < 0.5
         assert np.minimum(log["q"] - limits[:, 0], limits[:, 1] - log["q"]).min() >= 0.2
+        assert np.all(np.array(summary["push_watch_peak_Nm"]) <= 0.5 * np.array(MotionSettings().push)), summary
     fit = fit_logs(ROBOT, prepared(runs[1][0]), prepared(runs[0][0]))
     truth = truth_of(tool)
     assert abs(fit.value["mass"] - truth["mass"]) <= max(0.01 * truth["mass"], 0.01), (fit.value, truth)

@@ -88,6 +88,29 @@ def test_flange_frame_tool_matches_mujoco_with_the_tool_as_a_body(tmp_path):
             assert np.allclose(pred, extra, atol=1e-9), (pred, extra)
 
 
+def test_the_fed_forward_point_mass_torque_is_mujocos_inertial_torque_of_that_mass(tmp_path):
+    """motion.tool_motion.point_mass_inertial for a point mass phi = (m, m c) (what the push watch fits): minus the
+    inverse dynamics of panda.xml with that mass added as a body on the flange, less the model without it, less the
+    same at rest (its weight), at random states; and nothing below 0.05 kg."""
+    from dynamics import phi_of
+    from motion.tool_forms import EE_IN_F
+    from motion.tool_motion import point_mass_inertial
+    rng, robot = np.random.default_rng(29), Robot.panda()
+    for _ in range(3):
+        tool = make_tool(rng.uniform(0.4, 1.5), rng.uniform(-0.08, 0.08, 3), np.eye(3) * 1e-12)
+        m = _with_tool_body(tool, tmp_path / "with_point.xml")
+        d = mujoco.MjData(m)
+        phi = phi_of(np.array([tool.mass, *(EE_IN_F.T @ tool.com)]))      # the ee frame, as the watch's
+        q, dq, ddq = Q_READY + rng.uniform(-0.5, 0.5, 7), rng.normal(size=7), rng.normal(size=7)
+        extra = []
+        for v, a in ((dq, ddq), (np.zeros(7), np.zeros(7))):
+            d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
+            mujoco.mj_inverse(m, d)
+            extra.append(d.qfrc_inverse - robot.inverse_dynamics(q, v, a))
+        assert np.allclose(point_mass_inertial(robot, phi, q, dq, ddq), -(extra[0] - extra[1]), atol=1e-8)
+    assert not point_mass_inertial(robot, np.array([0.04, 0.0, 0.0, 0.002]), Q_READY, np.ones(7), np.ones(7)).any()
+
+
 @pytest.mark.parametrize("bad, match", [(dict(mass=-1.0), "mass"), (dict(com=[0, 0, 2.0]), "com"),
                                         (dict(inertia=np.diag([1e-3, 1e-3, 1e-2])), "inertia"),
                                         (dict(inertia=[[1e-3, 1e-4, 0], [0, 1e-3, 0], [0, 0, 1e-3]]), "inertia")])
@@ -110,6 +133,77 @@ def test_excitation_keeps_its_margin_speed_and_duration_from_random_start_poses(
     q0[5] = lo[5] + 0.1                                         # joint 6 within the margin of its limit
     with pytest.raises(ValueError, match="joint 6"):
         excitation(robot, q0, s)
+
+
+def test_excitation_about_another_centre_starts_at_the_start_and_is_the_centres_motion_after_the_rest():
+    """A start pose up to settings.max_shift from the centre (the reference's start, fresh draws): the set point starts
+    at q0, reaches the centre at rest by the end of the first rest within the speed limit, and from there on is the
+    motion about the centre to the sample; a start further away is refused naming the joint."""
+    rng, robot, s = np.random.default_rng(17), Robot.panda(), MotionSettings()
+    rest = int(round(s.rest * s.rate))
+    for _ in range(3):
+        center = Q_READY + rng.uniform(-0.3, 0.3, 7)
+        q0 = center + rng.uniform(-s.max_shift, s.max_shift, 7)
+        q, dq, ddq = excitation(robot, q0, s, center)
+        own = excitation(robot, center, s)
+        assert np.allclose(q[0], q0) and np.abs(dq[0]).max() < 1e-3 and np.abs(dq).max() <= s.max_speed * 1.01
+        assert np.allclose(q[rest - 1], center, atol=1e-9) and np.abs(dq[rest - 1]).max() < 1e-3
+        assert np.array_equal(q[rest + 1:], own[0][rest + 1:])
+    q0 = Q_READY.copy()
+    q0[3] += 1.5 * s.max_shift
+    with pytest.raises(ValueError, match="joint 4"):
+        excitation(robot, q0, s, Q_READY)
+
+
+def test_identify_refuses_a_reference_started_elsewhere_before_any_motion(tmp_path, monkeypatch):
+    """franka.py --identify --reference REF whose start pose lies further than max_shift from the arm's (joint 4, a
+    seeded draw of 1.5-3 times the limit): ValueError naming --reference and the joint, and no motion run."""
+    rng, s = np.random.default_rng(31), MotionSettings()
+    q = np.tile(np.asarray(franka.Q_START), (2000, 1)) + rng.normal(0, 1e-5, (2000, 7))
+    q[:, 3] += rng.uniform(1.5, 3.0) * s.max_shift * rng.choice([-1.0, 1.0])
+    path = tmp_path / "empty.npz"
+    np.savez(path, t=np.arange(2000) * 1e-3, q=q, dq=rng.normal(0, 1e-3, (2000, 7)),
+             tau_J=rng.normal(0, 0.01, (2000, 7)))
+    import robot.identify as identify
+    monkeypatch.setattr(identify, "run_motion", lambda *a, **k: pytest.fail("a motion was run"))
+    with pytest.raises(ValueError, match="--reference.*joint 4"):
+        franka.main(["--identify", "--sim", "--reference", str(path), "--sim-tool", "0.8", "0.02", "0.04", "0.07",
+                     "0.004", "0.003", "0.005"])
+
+
+def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_order_lag():
+    """robot.backends.MomentumObserver on panda.xml (the model) while MuJoCo moves panda.xml with a random tool added as
+    a body (the plant) under a spring and drawn torques (no joint limit reached): its r follows tau_x = tau_J - (M ddq
+    + C dq + G) of the model at MuJoCo's own accelerations (libfranka's sign: what the tool adds) through
+    dr/dt = K (tau_x - r), within 1 %."""
+    from robot.backends import MomentumObserver
+    rng, robot = np.random.default_rng(23), Robot.panda()
+    tool = random_tool(rng)
+    R = np.array([[np.cos(-np.pi / 4), -np.sin(-np.pi / 4), 0], [np.sin(-np.pi / 4), np.cos(-np.pi / 4), 0], [0, 0, 1]])
+    c, I = R.T @ tool.com, R.T @ tool.inertia @ R              # the ee frame: F turned -45 deg about z
+    xml, marker = open(PANDA_XML).read(), '<site name="flange" pos="0 0 0.107" size="0.01"/>'
+    body = (f'<body name="tool" pos="0 0 0.107" axisangle="0 0 1 -0.7853981633974483"><inertial pos="{c[0]} {c[1]} '
+            f'{c[2]}" mass="{tool.mass}" fullinertia="{I[0, 0]} {I[1, 1]} {I[2, 2]} {I[0, 1]} {I[0, 2]} '
+            f'{I[1, 2]}"/></body>')
+    plant = mujoco.MjModel.from_xml_string(xml.replace(marker, marker + body))
+    data, dt, K = mujoco.MjData(plant), plant.opt.timestep, 100.0
+    data.qpos[:] = Q_READY
+    mujoco.mj_forward(plant, data)
+    terms = lambda q, dq: robot.terms(q, dq)[1:]
+    observer = MomentumObserver(terms, np.zeros(7), K)
+    lagged, phase = np.zeros(7), rng.uniform(0, 2 * np.pi, 7)
+    for k in range(1500):
+        q, dq = data.qpos.copy(), data.qvel.copy()
+        tau_J = robot.gravity(q) + 100.0 * (Q_READY - q) - 5.0 * dq + 2.0 * np.sin(2 * np.pi * 0.7 * k * dt + phase)
+        r = observer.update(q, dq, tau_J, dt)
+        data.qfrc_applied[:] = tau_J
+        mujoco.mj_step(plant, data)
+        _, M, b = robot.terms(q, dq)
+        tau_x = tau_J - (M @ data.qacc + b)                  # what moved the plant beyond the model
+        lagged += K * dt * (tau_x - lagged) if k else 0.0
+        if k > 300:
+            assert np.abs(r - lagged).max() <= 0.01 * np.abs(tau_x).max() + 1e-3, (k, r, lagged)
+    assert np.abs(lagged).max() > 1.0                        # the tool's torque is there to be followed
 
 
 def test_a_push_ends_the_run_within_its_stated_time():
