@@ -76,7 +76,8 @@ class Verdict:
     phi: np.ndarray | None = None
     mass_std: float = np.inf       # the payload hypothesis' posterior std of the new mass [kg]
     cov: np.ndarray | None = None  # for "back": the covariance (4, 4) of the earlier phi
-    under: np.ndarray | None = None   # for "back": the wrench's level (n,) it returned under (None: none)
+    under: np.ndarray | None = None   # back, payload: the held wrench's level (n,) it is a step from (None: from
+    #                                   the reference)
 
     @property
     def sure(self) -> float:
@@ -236,27 +237,21 @@ class ChangeModel:
         and back to one under a wrench.
         Y (n, 4): the payload regressor at q; J (6, n): the flange's world Jacobian; phi (4,): compensated now;
         expected: the task announced a load change (the payload's prior odds EXPECTED); held (n,): the level of a
-        wrench judged before this one and still acting, if any: a return may be a step from it (one event: the
-        wrench stays), as well as a step from the reference (the wrench gone with it)."""
-        s, n = self.s, self.n
+        wrench judged before this one and still acting, if any: a return or a new payload may be a step from it (one
+        event: the wrench stays), as well as a step from the reference (the wrench gone with it; for a new payload
+        two events at once, COMPOUND)."""
+        s = self.s
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
         logs = {"noise": gaussian_log_pdf(d, V)}
-        P = np.diag(payloads.std ** 2)
-        C = Y @ P @ Y.T + V
-        f = cholesky(C)
-        e = d - Y @ (payloads.mean - phi)
-        K = P @ Y.T
-        new = payloads.mean + K @ cho_solve(f, e, check_finite=False)            # posterior of phi_new
-        cov = P - K @ cho_solve(f, K.T, check_finite=False)
-        logs["payload"] = float(-0.5 * e @ cho_solve(f, e, check_finite=False) - np.log(np.diag(f[0])).sum()
-                                - 0.5 * n * math.log(2 * math.pi)) + self._box(new[0], cov[0, 0], payloads) \
-            - self._box(payloads.mean[0], P[0, 0], payloads)
-        if new[0] >= 0.1 and np.abs(new[1:]).max() > payloads.max_com * new[0]:
-            logs["payload"] = -np.inf                                  # a CoM beyond any hand's reach: no payload
+        held = None if held is None else np.asarray(held, dtype=float)
+        steps = [(d, 0.0, None)] if held is None else [(d, COMPOUND, None), (d - held, 0.0, held)]
+        log, new, cov, odds, under = max((self._payload(x, Y, V, phi, payloads) + (o, u) for x, o, u in steps),
+                                         key=lambda c: c[0] + c[3])
+        logs["payload"] = log + odds               # under a held wrench: a step from its level (it goes on), or
+        #                                            from the reference (the wrench gone at once: two events)
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
-        held = None if held is None else np.asarray(held, dtype=float)
         if held is not None:
             logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
@@ -284,7 +279,23 @@ class ChangeModel:
         returned = best.startswith("back")
         return Verdict(d, post, best, earlier[1] if returned else new if best == "payload" else None,
                        math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if returned else None,
-                       earlier[3] if returned else None)
+                       earlier[3] if returned else under if best == "payload" else None)
+
+    def _payload(self, e, Y, V, phi, payloads: Payloads) -> tuple:
+        """(log evidence, posterior mean (4,), covariance (4, 4)) of a new payload phi_new ~ payloads, inside its
+        box, for the departure e (n,) from the level it replaces (phi compensated; V the level's covariance)."""
+        P = np.diag(payloads.std ** 2)
+        f = cholesky(Y @ P @ Y.T + V)
+        e = e - Y @ (payloads.mean - phi)
+        K = P @ Y.T
+        new = payloads.mean + K @ cho_solve(f, e, check_finite=False)            # posterior of phi_new
+        cov = P - K @ cho_solve(f, K.T, check_finite=False)
+        log = float(-0.5 * e @ cho_solve(f, e, check_finite=False) - np.log(np.diag(f[0])).sum()
+                    - 0.5 * self.n * math.log(2 * math.pi)) + self._box(new[0], cov[0, 0], payloads) \
+            - self._box(payloads.mean[0], P[0, 0], payloads)
+        if new[0] >= 0.1 and np.abs(new[1:]).max() > payloads.max_com * new[0]:
+            log = -np.inf                                              # a CoM beyond any hand's reach: no payload
+        return log, new, cov
 
     @staticmethod
     def _box(mean, var, p: Payloads) -> float:

@@ -114,6 +114,7 @@ class RME:
         self._refused = None                           # a departure d (n,) not to estimate again (its estimate
                                                        #   was refused, or made and applied) until it moves
         self._refine = None                            # the reference level an estimate at rest is owed against
+        self._refine_from = 0                          #   and the first sample its window may read (the change's)
         self._held_since = 0                           # the sample the compensation took its present value
         self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
@@ -312,13 +313,14 @@ class RME:
 
     def _step(self, q, Y, J):
         """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate at
-        rest a change made in motion is owed."""
+        rest on the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
-        if self._refine is not None and self._still >= s.window:       # owed: the same change, friction gone
-            level, self._refine = self._refine, None
-            return self._estimate_now(s.window, level, "at rest", refine=False)
+        owed = (self._refine is not None and self._still >= s.window   # the change on the full window, at rest
+                and k - self._refine_from >= s.window)
         moving = m.settling() > s.changes.detect
         if m.departure(q, Y) <= s.changes.detect:
+            if owed:                         # (what the compensation leaves is its own error: no other change)
+                return self._owed()
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
             self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
@@ -327,6 +329,8 @@ class RME:
             return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._held)
         self.verdicts.append((k / s.rate, v))
+        if owed and v.best in ("noise", "payload"):
+            return self._owed()              # (not under a wrench; the estimate covers what is on the flange now)
         if self._since is None or moving or not m.same(v.d, self._level, q, Y):
             self._since, self._level = k, v.d          # the level's age: since it settled where it is now
         elif v.best == "wrench" and k - self._since >= S and self._still >= S:
@@ -349,7 +353,11 @@ class RME:
             if self._refused is not None and m.same(v.d, self._refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
             W = s.detection_window
-            self._estimate_now(W, m.reference.level, "detection", refine=self._still < W)
+            if v.under is None:
+                self._estimate_now(W, m.reference.level, "detection", refine=W < s.window or self._still < W)
+            else:                            # under a held wrench: less its level too (the payload's step alone);
+                #                              not again at rest, when the wrench may be gone from that level
+                self._estimate_now(W, m.reference.level + v.under, "detection", refine=False)
         elif v.best.startswith("back"):                     # (under a wrench too: the payload part is known)
             e = Estimate(np.nan_to_num(theta_of(v.phi)), np.zeros(4), np.zeros((4, 4)), np.zeros(4),   # (no mass: r 0)
                          np.zeros(4, dtype=bool), 0.0,
@@ -362,6 +370,13 @@ class RME:
             self._since = None                                         # (still: no friction in it)
         elif not self._wrench:
             self.changes_not_payload, self._wrench = self.changes_not_payload + 1, True
+
+    def _owed(self):
+        """The estimate on the full window at rest a change first estimated on the short one (or in motion) is owed,
+        against the level before that change; made only while the level is the compensation's own, noise's or a
+        payload's (not a wrench's holding the arm still)."""
+        level, self._refine = self._refine, None
+        return self._estimate_now(self.settings.window, level, "at rest", refine=False)
 
     def _algorithm_1(self, q, r, J):
         """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window, referred to
@@ -426,7 +441,7 @@ class RME:
         """Compensate the decided estimate from now on; the residuals held are re-expressed under it. An estimate is
         the payload hypothesis' posterior for the level it was made of: what it leaves (the robot's error at this
         pose beyond the reference's) is not estimated again until the level moves (it would return the same); one
-        made in motion is made again at rest, as owed."""
+        made on the short window or in motion is made again on the full one at rest, as owed."""
         self._due, s = None, self.settings
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
@@ -444,6 +459,7 @@ class RME:
         due.estimate.applied = self._k / self.settings.rate
         self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
         self._refine = due.level if due.refine else None
+        self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
         if due.kind != "back" and due.departure is not None:
             self._refused = due.departure - d            # (the level it was made of, under the new compensation)
 

@@ -189,6 +189,31 @@ def test_a_press_let_go_under_a_push_already_held_is_a_return():
                 assert v.best == "wrench", v
 
 
+def test_a_payload_hung_on_under_a_push_already_held_is_a_payload_step_from_it():
+    """A sideways push holds the arm at J^T w (judged a wrench) and a load is hung on meanwhile: the step from the
+    held level is the load's torque alone, a payload with its mass within 10 % and the held level named (its
+    estimate is referred to it). Where the new level is a second push on top of the first, it stays a wrench."""
+    rng = np.random.default_rng(11)
+    for load in (True, False):
+        for _ in range(10):
+            J, R, Y = arm(rng)
+            m, bias = fresh(rng)
+            f = np.array([*rng.normal(0, 1, 2), 0.0])
+            push = J.T @ np.r_[f * rng.uniform(8, 40) / np.linalg.norm(f), 0, 0, 0]
+            stream(m, rng, [bias + push] * 120)
+            held = m.mean(m.s.short) - m.reference.level
+            mass = rng.uniform(0.5, 2.5)
+            phi = np.r_[mass, mass * rng.uniform(-0.05, 0.05, 3)]
+            g = rng.normal(0, 1, 3)
+            second = J.T @ np.r_[g * rng.uniform(8, 40) / np.linalg.norm(g), 0, 0, 0]
+            stream(m, rng, [bias + push + (Y @ phi if load else second)] * 120)
+            v = m.judge(Y, J, np.zeros(4), np.zeros(N), Payloads.plausible(3.0, 0.3), held=held)
+            if load:
+                assert v.best == "payload" and v.under is not None and abs(v.phi[0] - phi[0]) < 0.1 * phi[0], v
+            else:
+                assert v.best == "wrench", v
+
+
 def test_the_model_runs_without_mujoco():
     """changes.py is the model alone: importing it (in a fresh interpreter) loads no MuJoCo."""
     import subprocess

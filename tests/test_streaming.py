@@ -218,3 +218,23 @@ def test_fresh_episodes_of_each_plant_meet_stated_bounds(plant):
     assert side["yes"] <= 0.1 * side["count"] and s["ignored_load"]["over_target"] == 0, s
     assert s["nan"] == 0 and s["torque_over_limit"] == 0 and s["joint_limit_violations"] == 0
     assert s["estimates_per_event_max"] <= 5, s               # (each change estimated a few times, never in a loop)
+
+
+@pytest.mark.slow
+def test_the_estimate_at_rest_waits_for_a_push_holding_the_arm_still():
+    """A load (0.5-2.5 kg) is estimated at its detections on a short window and owed an estimate on the full one at
+    rest; a sideways push (20-30 N) holding the hand from just after the last detection for 3 s makes the arm still
+    under it, but that level is the push's: nothing is estimated while it acts, and the load is right after."""
+    rng = np.random.default_rng(2028)
+    for seed in range(2):
+        m, r = rng.uniform(0.5, 2.5), rng.uniform(-0.08, 0.08, 3)
+        side = rng.uniform(20.0, 30.0) * np.array([np.cos(a := rng.uniform(0, 2 * np.pi)), np.sin(a), 0.0])
+        _, est = hold(50 + seed, 1.5, [PayloadChange(1.0, m, tuple(r))])
+        t0 = max(e.t for e in est.history if e.kind == "detection") + 0.03   # (the same draws: the same detections)
+        events = [PayloadChange(1.0, m, tuple(r)), Push(t0, tuple(side), 3.0, body="link7", offset=(0.0, 0.0, 0.107))]
+        rec, est = hold(50 + seed, t0 + 5.0, events)
+        assert np.abs(rec.dq[rec.at(t0 + 2.4):rec.at(t0 + 3.0)]).max() < 0.01      # the push holds the arm still
+        during = [(round(e.t, 3), e.kind, e.mean.round(3).tolist()) for e in est.history if t0 + 0.03 < e.t < t0 + 3.0]
+        assert not during, (m, side, during)
+        assert within(rec.theta_hat[-1, 0], m), (m, [(round(e.t, 3), e.kind, e.mean.round(3).tolist())
+                                                     for e in est.history])
