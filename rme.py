@@ -329,12 +329,13 @@ class RME:
             return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._held)
         self.verdicts.append((k / s.rate, v))
-        if owed and v.best in ("noise", "payload"):
-            return self._owed()              # (not under a wrench; the estimate covers what is on the flange now)
         if self._since is None or moving or not m.same(v.d, self._level, q, Y):
             self._since, self._level = k, v.d          # the level's age: since it settled where it is now
         elif v.best == "wrench" and k - self._since >= S and self._still >= S:
             self._held = v.d                           # a wrench holding the arm still: a return may come under it
+        if owed and (v.best == "noise" or v.best == "payload" and k - self._since >= s.window):
+            return self._owed()              # (not under a wrench; a payload's level steady over the whole window:
+            #                                  the estimate covers what is on the flange now, no change inside it)
         if v.best != self._best:
             self._best, self._best_since = v.best, k
         young = max(k - self._since, k - self._best_since) < s.changes.patience * s.rate   # (a level younger than
