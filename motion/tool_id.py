@@ -124,11 +124,8 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         Z[:, :, 0] = 1.0 if s.drift else 0.0             # the offsets' column (1 - 1 = 0 in the difference)
         Z = Z if s.state_difference else Z[:, :, :1]
         fit_settings = dataclasses.replace(s.fit, offsets=False)
-    pi, info, Yr, tr = _fit(Y, tau, Z, fit_settings)
-    if reference is not None and s.state_difference and s.drive_share > 0:
-        a = _row_scale(Y, tau, Z, pi, s.drive_share)[..., None]   # weighted least squares: rows scaled by 1 / std
-        Y, tau, Z = Y * a, tau * a[..., 0], Z * a
-        pi, info, Yr, tr = _fit(Y, tau, Z, fit_settings)
+    share = s.drive_share if reference is not None and s.state_difference else 0.0
+    pi, info, Yr, tr, Y, tau, Z = _weighted_fit(Y, tau, Z, fit_settings, share)
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)
     noise = np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),           # white residual, and correlated
@@ -147,6 +144,17 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
                      f"({info.status})")
     return ToolFit(tool, pi, dict(zip(NAMES, value.tolist())), dict(zip(NAMES, std.tolist())),
                    dict(zip(NAMES, observed)), info, len(rows), info.residual, notes, dict(zip(NAMES, drives.tolist())))
+
+
+def _weighted_fit(Y, tau, Z, settings: FitSettings, share: float):
+    """_fit, and with share > 0 again on the rows scaled by _row_scale at the first fit's pi (weighted least squares):
+    (pi, FitInfo, the partialled Y and tau, the scaled Y, tau, Z)."""
+    pi, info, Yr, tr = _fit(Y, tau, Z, settings)
+    if share > 0:
+        a = _row_scale(Y, tau, Z, pi, share)[..., None]
+        Y, tau, Z = Y * a, tau * a[..., 0], Z * a
+        pi, info, Yr, tr = _fit(Y, tau, Z, settings)
+    return pi, info, Yr, tr, Y, tau, Z
 
 
 def _row_scale(Y, tau, Z, pi, share: float) -> np.ndarray:
