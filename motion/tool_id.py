@@ -36,6 +36,11 @@ class ToolFitSettings:
     #                                the motions' difference loses its rotor-inertia or its friction terms
     #                                (_drive_model_spread; on the benchmark the errors were 1.25-1.5 std rms without
     #                                it, 0.8-1.1 with it, tuning and held-out seeds, docs/tool_identification.md)
+    drive_share: float = 0.05       # referred: the drives' model of the motions' difference taken as known to this
+    #                                share of its torque, which each row's variance gets beside the residual's
+    #                                (_row_scale): rows where that torque dwarfs the noise (franky-sim's lift-back of
+    #                                the sagged arm, 0.3-0.8 Nm against 2-5 mNm) count for less; chosen among 0.03-1 on
+    #                                the benchmark's seeds 0-9 and franky-sim's two tools (docs/tool_identification.md)
     drift: bool = True              # referred: each joint's sensor offset may differ between the two runs (a Panda's
     #                                torque sensors drift with temperature: 0.05-0.08 Nm between windows minutes
     #                                apart on the beam logs, docs/real_logs.md); a constant per joint is partialled
@@ -119,7 +124,8 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         Z[:, :, 0] = 1.0 if s.drift else 0.0             # the offsets' column (1 - 1 = 0 in the difference)
         Z = Z if s.state_difference else Z[:, :, :1]
         fit_settings = dataclasses.replace(s.fit, offsets=False)
-    pi, info, Yr, tr = _fit(Y, tau, Z, fit_settings)
+    share = s.drive_share if reference is not None and s.state_difference else 0.0
+    pi, info, Yr, tr, Y, tau, Z = _weighted_fit(Y, tau, Z, fit_settings, share)
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)
     noise = np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),           # white residual, and correlated
@@ -138,6 +144,32 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
                      f"({info.status})")
     return ToolFit(tool, pi, dict(zip(NAMES, value.tolist())), dict(zip(NAMES, std.tolist())),
                    dict(zip(NAMES, observed)), info, len(rows), info.residual, notes, dict(zip(NAMES, drives.tolist())))
+
+
+def _weighted_fit(Y, tau, Z, settings: FitSettings, share: float):
+    """_fit, and with share > 0 again on the rows scaled by _row_scale at the first fit's pi (weighted least squares):
+    (pi, FitInfo, the partialled Y and tau, the scaled Y, tau, Z)."""
+    pi, info, Yr, tr = _fit(Y, tau, Z, settings)
+    if share > 0:
+        a = _row_scale(Y, tau, Z, pi, share)[..., None]
+        Y, tau, Z = Y * a, tau * a[..., 0], Z * a
+        pi, info, Yr, tr = _fit(Y, tau, Z, settings)
+    return pi, info, Yr, tr, Y, tau, Z
+
+
+def _row_scale(Y, tau, Z, pi, share: float) -> np.ndarray:
+    """(T, n) per row and joint sigma_j / sqrt(sigma_j^2 + (share d_tj)^2): d the drives' torque of the motions'
+    difference as fitted at pi (Z's columns but the offset, each joint's least squares on tau - Y pi), sigma_j the rms
+    of what is left; a row's weight falls where the result would lean on that model more than on the tool."""
+    e = tau - Y @ pi
+    scale = np.ones_like(tau)
+    for j in range(Y.shape[1]):
+        beta = np.linalg.lstsq(Z[:, j], e[:, j], rcond=None)[0]
+        d, left = Z[:, j, 1:] @ beta[1:], e[:, j] - Z[:, j] @ beta
+        var = np.mean(left ** 2)
+        if var > 0.0:
+            scale[:, j] = np.sqrt(var / (var + (share * d) ** 2))
+    return scale
 
 
 def _fit(Y, tau, Z, settings: FitSettings):
