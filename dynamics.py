@@ -78,6 +78,33 @@ def inertia_matrix(I6):
     return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
 
 
+class MomentumObserver:
+    """De Luca's momentum observer (De Luca et al. 2006), discrete: r (n,) follows the torque acting on the joints
+    beyond the model, dr/dt = K (tau_x - r), from q, dq, tau_J alone: in the paper's sign (tau_x = model - tau_J)
+    r = K (M dq - p0 - sum dt (tau_J - n' + r)), p0 = M dq at the first state, n' = n - Mdot dq (Mdot by the step's
+    difference). terms(q, dq) -> (M (n, n), n = C dq + G (+ joint damping) (n,)); gain K [1/s]; sign: +1 returns the
+    paper's sign, -1 libfranka's (tau_ext_hat_filtered); r0 (n,): r at the first state, in that sign (a robot's
+    estimate runs before control starts)."""
+
+    def __init__(self, terms, gain: float, sign: int = 1, r0=None):
+        self.terms, self.gain, self.sign = terms, float(gain), sign
+        self.r = None if r0 is None else sign * np.array(r0, dtype=float)    # (the paper's sign inside)
+        self._p0, self._M, self._integral = None, None, None
+
+    def update(self, q, dq, tau_J, dt: float) -> np.ndarray:
+        """r after a state q, dq, tau_J (n,), dt [s] after the previous one (the first sets p0 and returns r0)."""
+        M, n = self.terms(q, dq)
+        if self._p0 is None:
+            self._p0 = M @ dq
+            self.r = np.zeros(len(dq)) if self.r is None else self.r
+            self._integral = -self.r / self.gain
+        else:
+            self._integral += dt * (tau_J - (n - (M - self._M) / dt @ dq) + self.r)
+            self.r = self.gain * (M @ dq - self._p0 - self._integral)
+        self._M = M
+        return self.sign * self.r
+
+
 class Robot:
     """Nominal dynamics M(q) ddq + C(q, dq) dq + G(q) = tau of a serial arm of hinge joints (Eq. 1).
 

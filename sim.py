@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 
 import checks
-from dynamics import PANDA_XML, Q_READY, Robot, as_states, inertia_matrix
+from dynamics import PANDA_XML, Q_READY, MomentumObserver, Robot, as_states, inertia_matrix
 
 N = 7
 BIG, SMALL = 4, 3                                 # joints 1-4 and 5-7 (panda_facts.md)
@@ -307,19 +307,10 @@ class Plant:
         return s
 
     def _momentum_observer(self, q, dq, tau_J):
-        """r -> tau_ext with dr/dt = K (tau_ext - r) (De Luca's momentum observer, discrete, paper sign):
-        p = M dq, r = K (p - p0 - sum dt (tau_J - n + r)), n = C dq + G - Mdot dq = G - C^T dq."""
-        _, M, b = self.robot.terms(q, dq)
-        K, dt = self.config.observer_gain, self.dt
+        """tau_ext (paper sign) from dynamics.MomentumObserver on the nominal model, from rest at the first state."""
         if self._observer is None:
-            self._observer = dict(p0=M @ dq, integral=np.zeros(N), r=np.zeros(N), M=M)
-            return np.zeros(N)
-        o = self._observer
-        n = b - (M - o["M"]) / dt @ dq
-        o["integral"] += dt * (tau_J - n + o["r"])
-        o["r"] = K * (M @ dq - o["p0"] - o["integral"])
-        o["M"] = M
-        return o["r"].copy()
+            self._observer = MomentumObserver(lambda q, dq: self.robot.terms(q, dq)[1:], self.config.observer_gain)
+        return self._observer.update(q, dq, tau_J, self.dt)
 
     # --- viewer --------------------------------------------------------------------------------
     def open_viewer(self):

@@ -125,8 +125,8 @@ class FrankySimBackend(PylibfrankaBackend):
     """pylibfranka against franky-sim, which reports tau_ext_hat_filtered = tau_J (no external-torque estimate; its
     tau_J is the torque applied to the joints): read() replaces it with what libfranka's is, the torque of whatever
     the arm carries beyond its model, without "the mass and dynamics of the robot" (libfranka's RobotState): De Luca's
-    momentum observer (MomentumObserver, gain `observer_gain`) on the simulated arm and hand (franky-sim's own MJCF,
-    its rotor inertia and damping, fingers at `finger` m each), started at the first state's static estimate
+    momentum observer (dynamics.MomentumObserver, gain `observer_gain`) on the simulated arm and hand (franky-sim's
+    own MJCF, its rotor inertia and damping, fingers at `finger` m each), started at the first state's static estimate
     tau_J - G(q) (franky-sim's first tau_J in torque control is its own gravity alone: the estimate then rises to
     the tool's torque within about 3 / K, as the realistic plant's from zero; the push watch starts at 0.25 s)."""
 
@@ -187,32 +187,10 @@ class FrankySimBackend(PylibfrankaBackend):
     def read(self) -> State:
         s = super().read()
         if self._observer is None:
-            self._observer = MomentumObserver(self.terms, s.tau_J - self.gravity(s.q), self._gain)
+            from dynamics import MomentumObserver
+            self._observer = MomentumObserver(self.terms, self._gain, sign=-1, r0=s.tau_J - self.gravity(s.q))
         s.tau_ext_hat_filtered = self._observer.update(s.q, s.dq, s.tau_J, max(float(s.duration_s), 1e-3))
         return s
-
-
-class MomentumObserver:
-    """De Luca's momentum observer in libfranka's sign: r (n,) follows tau_x = tau_J - (M ddq + n) (what acts on the
-    joints beyond the model) as dr/dt = K (tau_x - r), from q, dq, tau_J alone: r = K (p0 + sum dt (tau_J - n' - r)
-    - p), p = M dq, n' = n - Mdot dq (Mdot by the step's difference; De Luca et al. 2006, as sim.Plant's in the
-    paper's sign). terms(q, dq) -> (M (n, n), n (n,)); r0: r at the first state (a robot's estimate runs before
-    control starts); gain K [1/s]."""
-
-    def __init__(self, terms, r0, gain: float):
-        self.terms, self.gain, self.r = terms, float(gain), np.array(r0, dtype=float)
-        self._p0, self._M, self._integral = None, None, self.r / self.gain
-
-    def update(self, q, dq, tau_J, dt: float) -> np.ndarray:
-        """r after a state q, dq, tau_J (n,) dt [s] after the previous one (the first sets p0 and returns r0)."""
-        M, n = self.terms(q, dq)
-        if self._p0 is None:
-            self._p0 = M @ dq
-        else:
-            self._integral += dt * (tau_J - (n - (M - self._M) / dt @ dq) - self.r)
-            self.r = self.gain * (self._p0 + self._integral - M @ dq)
-        self._M = M
-        return self.r.copy()
 
 
 class PandaPyBackend:

@@ -163,6 +163,17 @@ def test_a_press_let_go_under_a_sideways_push_is_no_new_payload():
     assert all(b in ("wrench", "back+wrench") for b, _ in res), res
 
 
+def held_push(rng):
+    """A fresh model at a drawn pose, a sideways push of 8-40 N at the flange streamed until held: J (6, n), Y (n, 4),
+    the model, its bias (n,), the push's torque (n,) and its held level (n,)."""
+    J, R, Y = arm(rng)
+    m, bias = fresh(rng)
+    f = np.array([*rng.normal(0, 1, 2), 0.0])
+    push = J.T @ np.r_[f * rng.uniform(8, 40) / np.linalg.norm(f), 0, 0, 0]
+    stream(m, rng, [bias + push] * 120)
+    return J, Y, m, bias, push, m.mean(m.s.short) - m.reference.level
+
+
 def test_a_press_let_go_under_a_push_already_held_is_a_return():
     """A sideways push has held the arm at the level J^T w (judged a wrench) while a press was compensated as a 2 kg
     load; the press is let go and the push stays: the step from the held level is the press's reversal alone (one
@@ -173,12 +184,7 @@ def test_a_press_let_go_under_a_push_already_held_is_a_return():
     near = np.array([20 / 9.81 - 0.03, 0, 0, 0])          # an earlier estimate 30 g away
     for release in (True, False):
         for _ in range(10):
-            J, R, Y = arm(rng)
-            m, bias = fresh(rng)
-            f = np.array([*rng.normal(0, 1, 2), 0.0])
-            push = J.T @ np.r_[f * rng.uniform(8, 40) / np.linalg.norm(f), 0, 0, 0]
-            stream(m, rng, [bias + push] * 120)
-            held = m.mean(m.s.short) - m.reference.level
+            J, Y, m, bias, push, held = held_push(rng)
             stream(m, rng, [bias + push - (Y @ phi if release else 0)] * 120)
             p = Payloads.plausible(3.0, 0.3)
             p.earlier, p.covs = [near, np.zeros(4)], [np.zeros((4, 4))] * 2
@@ -196,12 +202,7 @@ def test_a_payload_hung_on_under_a_push_already_held_is_a_payload_step_from_it()
     rng = np.random.default_rng(11)
     for load in (True, False):
         for _ in range(10):
-            J, R, Y = arm(rng)
-            m, bias = fresh(rng)
-            f = np.array([*rng.normal(0, 1, 2), 0.0])
-            push = J.T @ np.r_[f * rng.uniform(8, 40) / np.linalg.norm(f), 0, 0, 0]
-            stream(m, rng, [bias + push] * 120)
-            held = m.mean(m.s.short) - m.reference.level
+            J, Y, m, bias, push, held = held_push(rng)
             mass = rng.uniform(0.5, 2.5)
             phi = np.r_[mass, mass * rng.uniform(-0.05, 0.05, 3)]
             g = rng.normal(0, 1, 3)

@@ -172,11 +172,11 @@ def test_identify_refuses_a_reference_started_elsewhere_before_any_motion(tmp_pa
 
 
 def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_order_lag():
-    """robot.backends.MomentumObserver on panda.xml (the model) while MuJoCo moves panda.xml with a random tool added as
-    a body (the plant) under a spring and drawn torques (no joint limit reached): its r follows tau_x = tau_J - (M ddq
-    + C dq + G) of the model at MuJoCo's own accelerations (libfranka's sign: what the tool adds) through
-    dr/dt = K (tau_x - r), within 1 %."""
-    from robot.backends import MomentumObserver
+    """dynamics.MomentumObserver in libfranka's sign on panda.xml (the model) while MuJoCo moves panda.xml with a
+    random tool added as a body (the plant) under a spring and drawn torques (no joint limit reached): its r follows
+    tau_x = tau_J - (M ddq + C dq + G) of the model at MuJoCo's own accelerations (libfranka's sign: what the tool
+    adds) through dr/dt = K (tau_x - r), within 1 %."""
+    from dynamics import MomentumObserver
     rng, robot = np.random.default_rng(23), Robot.panda()
     tool = random_tool(rng)
     R = np.array([[np.cos(-np.pi / 4), -np.sin(-np.pi / 4), 0], [np.sin(-np.pi / 4), np.cos(-np.pi / 4), 0], [0, 0, 1]])
@@ -190,7 +190,7 @@ def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_or
     data.qpos[:] = Q_READY
     mujoco.mj_forward(plant, data)
     terms = lambda q, dq: robot.terms(q, dq)[1:]
-    observer = MomentumObserver(terms, np.zeros(7), K)
+    observer = MomentumObserver(terms, K, sign=-1)
     lagged, phase = np.zeros(7), rng.uniform(0, 2 * np.pi, 7)
     for k in range(1500):
         q, dq = data.qpos.copy(), data.qvel.copy()
