@@ -46,6 +46,17 @@ class ToolFitSettings:
     #                                apart on the beam logs, docs/real_logs.md); a constant per joint is partialled
     #                                out with the drives' terms (the mass then comes from the weight's change over
     #                                the cone's poses, not from its level at the start pose)
+    instrumented_joints: tuple = (6,)   # referred: joints (0-based) whose drives' columns are instrumented
+    #                                (_instrumented): joint 7's. Its columns are mostly filtered dq noise (ddq
+    #                                difference 0.030 rad/s^2 rms of noise against 0.023-0.027 of signal), which
+    #                                shrinks their coefficients (errors in the variables) and leaves the drives' torque
+    #                                of the difference in Izz (-1.7 % on seeds 0-9), seen by joint 7 alone to 1-3 %;
+    #                                joints 5 and 6 see the x and y moments through a few mNm (std 5-20 %), which
+    #                                instrumented columns take (Iyy's spread doubles) (docs/tool_identification.md)
+    instrument_lags: tuple = (8, 16, 24)   # rows (10 samples each) before and after a row whose columns are its
+    #                                instruments: 80 ms and more, beyond the 77-sample filter (robot.identify.LOG),
+    #                                so their noise is independent of the row's; the motion's 1.1-1.5 Hz stays
+    #                                correlated over them
     fit: FitSettings = field(default_factory=lambda: FitSettings(prior_std=(5.0, 1.0, 1.0, 1.0), inertia_std=1.0))
     #                                a weak prior: 5 kg, 1 kg m, 1 kg m^2 (the data decide)
 
@@ -123,6 +134,7 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         Z = nuisance(dq, ddq, s.friction_widths) - nuisance(dq_ref[rows], ddq_ref[rows], s.friction_widths)
         Z[:, :, 0] = 1.0 if s.drift else 0.0             # the offsets' column (1 - 1 = 0 in the difference)
         Z = Z if s.state_difference else Z[:, :, :1]
+        Z = _instrumented(Y, Z, s.instrumented_joints, s.instrument_lags) if s.state_difference else Z
         fit_settings = dataclasses.replace(s.fit, offsets=False)
     share = s.drive_share if reference is not None and s.state_difference else 0.0
     pi, info, Yr, tr, Y, tau, Z = _weighted_fit(Y, tau, Z, fit_settings, share)
@@ -155,6 +167,20 @@ def _weighted_fit(Y, tau, Z, settings: FitSettings, share: float):
         Y, tau, Z = Y * a, tau * a[..., 0], Z * a
         pi, info, Yr, tr = _fit(Y, tau, Z, settings)
     return pi, info, Yr, tr, Y, tau, Z
+
+
+def _instrumented(Y, Z, joints, lags) -> np.ndarray:
+    """Z (T, n, k) with the listed joints' columns but the offset replaced by their least-squares projection on
+    [1, Y_j (T, 10), the same columns `lags` rows before and after] (two-stage least squares' first stage: what the
+    rows' own noise cannot reach; Y_j in it, so the columns keep no part of the tool's regressor they lacked)."""
+    Zh = Z.copy()
+    for j in joints:
+        c = Z[:, j, 1:]
+        before = [np.concatenate([np.repeat(c[:1], L, 0), c[:-L]]) for L in lags]
+        after = [np.concatenate([c[L:], np.repeat(c[-1:], L, 0)]) for L in lags]
+        W = np.concatenate([np.ones((len(c), 1)), Y[:, j], *before, *after], axis=1)
+        Zh[:, j, 1:] = W @ np.linalg.lstsq(W, c, rcond=None)[0]
+    return Zh
 
 
 def _row_scale(Y, tau, Z, pi, share: float) -> np.ndarray:
