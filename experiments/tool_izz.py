@@ -1,6 +1,6 @@
 """Izz's bias split by source (docs/tool_identification.md): the bench's runs again with the plant's true states, the
-fit's linear response to each part of the residual at the true tool, and fits with the drives' columns from the true
-states or instrumented. python -m experiments.tool_izz --seeds 0-9"""
+fit's linear response to each part of the residual at the true tool, and fits with the drives' columns from q, the
+true states or instrumented. python -m experiments.tool_izz --seeds 0-9"""
 from __future__ import annotations
 
 import argparse
@@ -76,7 +76,11 @@ def seed_data(robot, seed):
         for k, p in parts.items():
             out["parts"][k] = out["parts"].get(k, 0.0) + sign * p
         cols[name] = (log.dq[rows], log.ddq[rows], v, a)
+    (vt, at), (vr, ar) = (ti._from_q(log.q[:T], 1e-3, S.q_window) for log in (run, ref))
+    out["Z_q"] = columns(vt[rows], at[rows], vr[rows], ar[rows])
     out["Z"] = columns(cols["t"][0], cols["t"][1], cols["r"][0], cols["r"][1])
+    out["Z_this"] = out["Z"].copy()
+    out["Z_this"][:, list(S.q_columns)] = out["Z_q"][:, list(S.q_columns)]
     out["Z_true"] = columns(cols["t"][2], cols["t"][3], cols["r"][2], cols["r"][3])
     out["Z_true_ddq"] = columns(cols["t"][0], cols["t"][3], cols["r"][0], cols["r"][3])
     out["Z_true_friction"] = columns(cols["t"][2], cols["t"][1], cols["r"][2], cols["r"][1])
@@ -92,14 +96,16 @@ def columns(dq_t, ddq_t, dq_r, ddq_r):
     return Z
 
 
-def instrumented(Y, Z, lags):
-    """Each joint's drives' columns projected on [1, its Y, its columns at +-lag rows] (the first stage)."""
+def instrumented(Y, Z, lags, joints=range(7)):
+    """Z with the joints' columns but the offset replaced by their least-squares projection on [1, Y_j, the same
+    columns `lags` rows before and after] (two-stage least squares' first stage; rows 80 ms and more away lie beyond
+    the 77-sample filter, so their noise is not the row's)."""
     Zh = Z.copy()
-    for j in range(Z.shape[1]):
+    for j in joints:
         c = Z[:, j, 1:]
-        shifted = [np.concatenate([np.repeat(c[:1], L, 0), c[:-L]]) for L in lags] + \
-                  [np.concatenate([c[L:], np.repeat(c[-1:], L, 0)]) for L in lags]
-        W = np.concatenate([np.ones((len(c), 1)), Y[:, j], *shifted], axis=1)
+        before = [np.concatenate([np.repeat(c[:1], L, 0), c[:-L]]) for L in lags]
+        after = [np.concatenate([c[L:], np.repeat(c[-1:], L, 0)]) for L in lags]
+        W = np.concatenate([np.ones((len(c), 1)), Y[:, j], *before, *after], axis=1)
         Zh[:, j, 1:] = W @ np.linalg.lstsq(W, c, rcond=None)[0]
     return Zh
 
@@ -133,10 +139,12 @@ def fit_with(d, Z, tau=None, moved=None):
 
 def fits(d) -> dict:
     """Per treatment of the columns: (value - truth, std, observed) (10,) each, fit_tool's fit on those columns."""
-    Zs = {"measured (this code)": d["Z"], "true states": d["Z_true"], "true ddq only": d["Z_true_ddq"],
+    Zs = {"joint 7's from q (this code)": d["Z_this"], "logged": d["Z"], "from q": d["Z_q"],
+          "true states": d["Z_true"], "true ddq only": d["Z_true_ddq"],
           "true friction only": d["Z_true_friction"],
           **{f"instrumented {lags}": instrumented(d["Y"], d["Z"], lags) for lags in LAGS},
-          "ddq column instrumented (8, 16)": ddq_only(d["Y"], d["Z"], LAGS[0])}
+          "ddq column instrumented (8, 16)": ddq_only(d["Y"], d["Z"], LAGS[0]),
+          f"joint 7's instrumented {LAGS[1]}": instrumented(d["Y"], d["Z"], LAGS[1], (6,))}
     tau = {k: d["tau"] for k in Zs}
     Zs["none, the plant's drives subtracted"], tau["none, the plant's drives subtracted"] = \
         d["Z"][:, :, :1], d["tau"] - d["parts"]["drives"]
@@ -146,7 +154,7 @@ def fits(d) -> dict:
         value, std, observed = fit_with(d, Z, tau[k])
         out[k] = (value - truth, std, observed, truth)
     value, std, observed = fit_with(d, d["Z"], moved=lambda Z: instrumented(d["Y"], Z, LAGS[1]))
-    out[f"measured, spread with instrumented {LAGS[1]}"] = (value - truth, std, observed, truth)
+    out[f"logged, spread with instrumented {LAGS[1]}"] = (value - truth, std, observed, truth)
     return out
 
 
@@ -165,7 +173,7 @@ def print_fits(fit: dict):
         e, s, o, t = (np.array(x) for x in zip(*rows))
         rel, z = 100 * e[:, 4:7] / t[:, 4:7], e[:, :7] / s[:, :7]
         rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
-        print(f"  {k:36s} {1e3 * np.abs(e[:, 0]).max():.1f}, {1e3 * rms(e[:, 0]):.2f} g; "
+        print(f"  {k:46s} {1e3 * np.abs(e[:, 0]).max():.1f}, {1e3 * rms(e[:, 0]):.2f} g; "
               f"{1e3 * np.abs(e[:, 1:4]).max():.2f}, {1e3 * rms(e[:, 1:4]):.3f} mm; "
               f"{np.round(rel.mean(0), 2).tolist()} ({np.round(rel.std(0), 1).tolist()}); "
               f"{int((np.abs(z) > 2).sum())} of {z.size}; {rms(z[:, 0]):.2f}, {rms(z[:, 1:4]):.2f}, "
@@ -191,6 +199,10 @@ def main(argv=None):
         for k, v in response(d, d["Z"]).items():
             resp.setdefault(k, []).append(v)
         resp.setdefault("drives, columns from the true states", []).append(response(d, d["Z_true"])["drives"])
+        for k, v in response(d, d["Z_this"]).items():
+            resp.setdefault(f"{k}, joint 7's from q (this code)", []).append(v)
+        resp.setdefault(f"drives, joint 7's instrumented {LAGS[1]}", []).append(
+            response(d, instrumented(d["Y"], d["Z"], LAGS[1], (6,)))["drives"])
         for k, v in fits(d).items():
             fit.setdefault(k, []).append(v)
         noise, signal = (d["Z"] - d["Z_true"])[:, 6], d["Z_true"][:, 6]
@@ -198,12 +210,13 @@ def main(argv=None):
               f"{signal[:, -1].std():.4f}, noise {noise[:, 1].std():.5f}, {noise[:, -1].std():.4f}", flush=True)
         print(f"seed {seed}: joint 7 rotor inertia, R^2 of the drives' torque: measured columns "
               f"{np.round(coefficient(d, d['Z']), 3).tolist()}, true-state columns "
-              f"{np.round(coefficient(d, d['Z_true']), 3).tolist()}, instrumented {LAGS[0]} "
-              f"{np.round(coefficient(d, instrumented(d['Y'], d['Z'], LAGS[0])), 3).tolist()}; what is left on Izz "
-              f"{resp['what is left'][-1][2]:+.2f} %", flush=True)
-    print("the fit's linear response to each part, Ixx, Iyy, Izz [%] mean (sd):")
+              f"{np.round(coefficient(d, d['Z_true']), 3).tolist()}, from q "
+              f"{np.round(coefficient(d, d['Z_q']), 3).tolist()}, instrumented {LAGS[1]} "
+              f"{np.round(coefficient(d, instrumented(d['Y'], d['Z'], LAGS[1])), 3).tolist()}; what is "
+              f"left on Izz {resp['what is left'][-1][2]:+.2f} %", flush=True)
+    print("the fit's linear response to each part (the logged columns unless said), Ixx, Iyy, Izz [%] mean (sd):")
     for k, v in resp.items():
-        print(f"  {k:36s} {np.round(np.mean(v, 0), 2).tolist()} ({np.round(np.std(v, 0), 2).tolist()})")
+        print(f"  {k:50s} {np.round(np.mean(v, 0), 2).tolist()} ({np.round(np.std(v, 0), 2).tolist()})")
     print_fits(fit)
 
 
