@@ -7,6 +7,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from dynamics import Robot
 from motion.inertia import FitInfo, FitSettings, fit_inertia
@@ -46,6 +47,18 @@ class ToolFitSettings:
     #                                apart on the beam logs, docs/real_logs.md); a constant per joint is partialled
     #                                out with the drives' terms (the mass then comes from the weight's change over
     #                                the cone's poses, not from its level at the start pose)
+    q_columns: tuple = (6,)         # referred: joints (0-based) whose drives' columns of the difference are built
+    #                                from q (Savitzky-Golay derivatives over q_window, _from_q): joint 7's. Built from
+    #                                the logged dq and ddq they are mostly noise (on the realistic plant joint 7's ddq
+    #                                difference carries 0.030 rad/s^2 rms of differentiated dq noise against 0.023-0.027
+    #                                of signal), which shrinks their coefficients (errors in the variables) and leaves
+    #                                the drives' torque of the difference in Izz: -1.7 % from joint 7's columns, within
+    #                                0.04 % from each other joint's (seeds 0-9). From q (a Panda's q carries 2-4e-6 rad
+    #                                of noise, dq 0.8-1.5e-3 rad/s: beam logs) ddq's noise is 50 times less. Joints 5
+    #                                and 6 keep the logged ones: built from q their columns took Iyy's information
+    #                                (Iyy -8.0 %, sd 9.2, against -2.4 %, sd 2.7) (docs/tool_identification.md)
+    q_window: float = 0.075         # s: the derivatives' Savitzky-Golay window (order 3), the log's own filter
+    #                                (robot.identify.LOG), so the columns pass what the torques pass
     fit: FitSettings = field(default_factory=lambda: FitSettings(prior_std=(5.0, 1.0, 1.0, 1.0), inertia_std=1.0))
     #                                a weak prior: 5 kg, 1 kg m, 1 kg m^2 (the data decide)
 
@@ -95,19 +108,20 @@ def partial_out(Y, tau, Z):
     return Yr, tr
 
 
-def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFitSettings = ToolFitSettings()):
+def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFitSettings = ToolFitSettings(),
+             dt: float = 1e-3):
     """The tool from a motion: q, dq, ddq, tau_ext (T, n) (tau_ext in the paper's sign, filtered alike with dq,
     diagnosis.logs.prepare; the tool's whole torque, nothing of it configured). reference: (q, dq, ddq, tau_ext)
     (T', n) of the same motion with the flange empty (row k beside row k): its tau_ext is subtracted, which removes the arm's
     own model error and the sensor's offsets (Khalil, Gautier, Lemoine 2007: loaded minus unloaded), so the tool's
     whole torque is fitted, its weight at every pose included (what gives the mass); without it the joints' friction
-    and rotor inertia are partialled out, and the arm's model error of links 5-7 stays in the result (a note says so). Returns a
-    ToolFit."""
+    and rotor inertia are partialled out, and the arm's model error of links 5-7 stays in the result (a note says so).
+    dt: the samples' period [s] (the q_columns' derivatives). Returns a ToolFit."""
     arrays = [np.asarray(a, dtype=float) for a in (q, dq, ddq, tau_ext)]
     n, s = robot.n, settings
     if reference is not None:
         arrays = _referred(arrays, reference, settings.reference_tolerance)
-        ddq_ref, dq_ref = arrays.pop(), arrays.pop()
+        ddq_ref, dq_ref, q_ref = arrays.pop(), arrays.pop(), arrays.pop()
     if any(a.ndim != 2 or a.shape != arrays[0].shape or a.shape[1] != n for a in arrays):
         raise ValueError(f"q, dq, ddq, tau_ext: expected four (T, {n}) arrays, found {[a.shape for a in arrays]}")
     if not all(np.isfinite(a).all() for a in arrays):
@@ -121,6 +135,11 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
         Z, fit_settings = nuisance(dq, ddq, s.friction_widths), s.fit
     else:       # referred: the offsets are the reference's too; what the drives add for the states' difference stays
         Z = nuisance(dq, ddq, s.friction_widths) - nuisance(dq_ref[rows], ddq_ref[rows], s.friction_widths)
+        if s.q_columns:
+            (v, a), (v_ref, a_ref) = (_from_q(x, dt, s.q_window) for x in (arrays[0], q_ref))
+            from_q = nuisance(v[rows], a[rows], s.friction_widths) - nuisance(v_ref[rows], a_ref[rows],
+                                                                              s.friction_widths)
+            Z[:, list(s.q_columns)] = from_q[:, list(s.q_columns)]
         Z[:, :, 0] = 1.0 if s.drift else 0.0             # the offsets' column (1 - 1 = 0 in the difference)
         Z = Z if s.state_difference else Z[:, :, :1]
         fit_settings = dataclasses.replace(s.fit, offsets=False)
@@ -223,7 +242,14 @@ def _referred(arrays, reference, tolerance):
         raise ValueError(f"reference: expected the same motion (rms q difference <= {tolerance} rad, lengths within "
                          f"5 %), found rms {np.round(gap, 4).tolist()} rad, {len(q_ref)} and {len(arrays[0])} samples")
     q, dq, ddq, tau = (a[:T] for a in arrays)
-    return [q, dq, ddq, tau - tau_ref[:T], dq_ref[:T], ddq_ref[:T]]
+    return [q, dq, ddq, tau - tau_ref[:T], q_ref[:T], dq_ref[:T], ddq_ref[:T]]
+
+
+def _from_q(q, dt: float, window: float):
+    """(dq, ddq) (T, n) of q (T, n) by Savitzky-Golay derivatives of order 3 over `window` seconds (at least 5
+    samples, at most the log)."""
+    win = min(max(2 * int(round(window / dt / 2)) + 1, 5), len(q) - (len(q) + 1) % 2)
+    return tuple(savgol_filter(q, win, 3, deriv=k, delta=dt, axis=0, mode="interp") for k in (1, 2))
 
 
 def _parameters(pi) -> np.ndarray:

@@ -85,7 +85,7 @@ def torque_of(robot: Robot, log) -> np.ndarray:
 def fit_logs(robot: Robot, log, reference=None) -> ToolFit:
     """fit_tool on a prepared Log, referred to the prepared Log `reference` (the flange empty) when given."""
     ref = None if reference is None else (reference.q, reference.dq, reference.ddq, torque_of(robot, reference))
-    return fit_tool(robot, log.q, log.dq, log.ddq, torque_of(robot, log), reference=ref)
+    return fit_tool(robot, log.q, log.dq, log.ddq, torque_of(robot, log), reference=ref, dt=log.info["dt"])
 
 
 def report(fit: ToolFit, truth=None, motion: dict | None = None) -> dict:
