@@ -7,7 +7,6 @@ import os
 
 import mujoco
 import numpy as np
-from scipy.signal import savgol_filter
 
 import checks
 
@@ -373,28 +372,6 @@ class Robot:
         Y = np.empty((J.shape[0], self.n, 4))
         Y[:, :, 0] = self.g @ J[:, :3]
         Y[:, :, 1:] = -J[:, 3:].transpose(0, 2, 1) @ (self._g_skew @ R)
-        return Y
-
-    def payload_regressor_moving(self, J, R, dq, dt, span: int = 61):
-        """Y (T, n, 4) of a window in motion: the torque phi = (m, m r) applies with the flange's acceleration as
-        well as gravity, from J (T, 6, n), R (T, 3, 3) and the measured dq (T, n) sampled every dt [s].
-        body_regressor's first four columns without the payload's own rotational inertia (m r r^T: 2 kg at 5 cm
-        times 1 rad/s^2 is 5 mNm): f = m (a - g) + (al x + w x w x) h, n = h x (a - g), h = R m r; the flange's
-        velocities J dq are differentiated over `span` samples (a local quadratic, scipy's Savitzky-Golay filter): dq's
-        noise (1e-3 rad/s) leaves about 0.01 m/s^2 in a, and motions up to 0.5-1 Hz lose 2-7 % of their acceleration
-        (docs/streaming.md). At rest it is payload_regressor_from(J, R)."""
-        J, R, dq = np.asarray(J), np.asarray(R), np.asarray(dq)
-        if dq.shape[0] < 5:
-            return self.payload_regressor_from(J, R)
-        V = np.einsum("tij,tj->ti", J, dq)                  # (T, 6): flange velocity [v; w], world frame
-        span = min(span, dq.shape[0] - (1 - dq.shape[0] % 2))
-        A = savgol_filter(V, span, 2, deriv=1, delta=dt, axis=0, mode="interp")
-        a, w, al = A[:, :3] - self.g, V[:, 3:], A[:, 3:]
-        Y = np.empty((dq.shape[0], self.n, 4))
-        Y[:, :, 0] = -np.einsum("tji,tj->ti", J[:, :3], a)
-        force = (skew(al) + skew(w) @ skew(w)) @ R                  # (T, 3, 3): per unit h_ee
-        moment = -skew(a) @ R
-        Y[:, :, 1:] = -(J[:, :3].transpose(0, 2, 1) @ force + J[:, 3:].transpose(0, 2, 1) @ moment)
         return Y
 
     def link_bodies(self) -> tuple:

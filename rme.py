@@ -40,8 +40,7 @@ class Estimate:
     t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
     explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
-    kind: str = "window"             # "detection" (the model found a new payload), "in motion" (the same change
-                                     #   on the full window while the arm still moves), "at rest" (the same change
+    kind: str = "window"             # "detection" (the model found a new payload), "at rest" (the same change
                                      #   again once the arm is still), "back" (the level returned to what an
                                      #   earlier payload leaves: that payload again, no window estimated) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
@@ -116,8 +115,6 @@ class RME:
                                                        #   was refused, or made and applied) until it moves
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
-        self._refine_moving = False                    #   and whether it may be made once in motion before
-        self._unsteady = 0                             # the last sample the level moved or left or met the reference
         self._held_since = 0                           # the sample the compensation took its present value
         self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
@@ -160,9 +157,7 @@ class RME:
         is absolute and carries that error (ErrorModel.absolute, tenths of a Nm; its calibrated offset subtracted).
         A baseline window (T_b, n) is subtracted as its mean, and what its own swing leaves in that mean is counted
         (vi.level_variance, with ErrorModel.drift for the rest when calibrated).
-        dq (T, n): joint velocities. Given, the payload's regressor holds its inertial force in motion as well as its
-        weight (Robot.payload_regressor_moving; at rest the two agree); a velocity-dependent correction (e.g. fitted
-        friction) needs it too.
+        dq (T, n): joint velocities, needed only by a velocity-dependent correction (e.g. fitted friction).
         referred: None: the window is referred exactly when a baseline is given; True: tau_ext is already less the
         level before the change (you subtracted it); False: absolute even with a baseline."""
         if referred is not None and not isinstance(referred, (bool, np.bool_)):
@@ -172,13 +167,13 @@ class RME:
                              "change is referred), found False")
         ref = lambda b: bool(b is not None if referred is None else referred)
         if not isinstance(q, (list, tuple)):
-            q, tau, level, dq = self._window(q, tau_ext, baseline, dq, ref(baseline))
-            return self._estimate(q, tau, dq, referred=ref(baseline), level=level)[0]
+            q, tau, level = self._window(q, tau_ext, baseline, dq, ref(baseline))
+            return self._estimate(q, tau, referred=ref(baseline), level=level)[0]
         each = lambda v: [None] * len(q) if v is None else list(v) if isinstance(v, (list, tuple)) else []
         if not (q and len(each(tau_ext)) == len(q) == len(each(baseline)) == len(each(dq))):
             raise ValueError(f"q, tau_ext, baseline, dq: expected lists of {len(q)} windows (or None), found other")
         windows = [self._window(*w, ref(w[2])) for w in zip(q, each(tau_ext), each(baseline), each(dq))]
-        return self._estimate([w[0] for w in windows], [w[1] for w in windows], [w[3] for w in windows],
+        return self._estimate([w[0] for w in windows], [w[1] for w in windows],
                               referred=[ref(b) for b in each(baseline)], level=[w[2] for w in windows])[0]
 
     def _absolute_error(self, q):
@@ -211,13 +206,12 @@ class RME:
             tau = tau - np.asarray(self.error_model.offset)          #   model error, and the known tool's weight
             if self.tool is not None:
                 tau = tau - self.robot.payload_regressor(q) @ self._tool_phi
-        if dq is not None:
-            dq = as_states("dq", dq, n)[0]
+        if self.correction is not None:
+            dq = np.zeros_like(q) if dq is None else as_states("dq", dq, n)[0]
             if dq.shape != q.shape:
                 raise ValueError(f"dq: expected shape {q.shape} like q, found {dq.shape}")
-        if self.correction is not None:
-            tau = tau - self.correction.correction(q, np.zeros_like(q) if dq is None else dq)
-        return q, tau, level, dq
+            tau = tau - self.correction.correction(q, dq)
+        return q, tau, level
 
     def _torques(self, name, x, allow_window=True):
         """as_states, every torque within settings.max_abs_torque (beyond it a sensor fault, not a load)."""
@@ -228,7 +222,7 @@ class RME:
                              f"{self.settings.max_abs_torque:g} Nm, found {tau[i]:g} at index {i if batched else i[1]}")
         return tau, batched
 
-    def _estimate(self, q, tau, dq=None, referred=True, level=None):
+    def _estimate(self, q, tau, referred=True, level=None):
         """Network prior and VI on checked, corrected windows (or lists): (Estimate, S) with S (n + 5, 4) what
         judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows).
         referred: the window is less the level before the change (else absolute; a list with lists of windows);
@@ -240,11 +234,9 @@ class RME:
         start, many, Ys, priors = time.perf_counter(), isinstance(q, list), [], []
         referred = ([referred] * len(q) if isinstance(referred, bool) else referred) if many else referred
         network = self.net is not None and bool(np.all(referred))
-        dqs = (dq if dq is not None else [None] * len(q)) if many else [dq]
-        for qi, ti, vi_ in zip(q if many else [q], tau if many else [tau], dqs):
+        for qi, ti in zip(q if many else [q], tau if many else [tau]):
             _, R, J = self.robot.kinematics(qi)                     # one forward-kinematics pass per window
-            Ys.append(self.robot.payload_regressor_from(J, R) if vi_ is None else     # (with dq: the payload's
-                      self.robot.payload_regressor_moving(J, R, vi_, 1 / self.settings.rate))  # inertia in motion)
+            Ys.append(self.robot.payload_regressor_from(J, R))
             priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if network else np.zeros(4))
         prior = np.mean(priors, axis=0)
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
@@ -323,13 +315,10 @@ class RME:
         """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate at
         rest on the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
-        moving, quiet = m.settling() > s.changes.detect, m.departure(q, Y) <= s.changes.detect
-        if moving or quiet != (self._since is None):
-            self._unsteady = k               # the level moves, or it leaves the reference or comes back to it
-        owed = (self._refine is not None and k - self._refine_from >= s.window     # the change on the full window:
-                and (self._still >= s.window                                        # at rest; once before, in
-                     or self._refine_moving and k - self._unsteady >= s.window))    # motion, on one level alone
-        if quiet:
+        owed = (self._refine is not None and self._still >= s.window   # the change on the full window, at rest
+                and k - self._refine_from >= s.window)
+        moving = m.settling() > s.changes.detect
+        if m.departure(q, Y) <= s.changes.detect:
             if owed:                         # (what the compensation leaves is its own error: no other change)
                 return self._owed()
             if moving:
@@ -342,7 +331,6 @@ class RME:
         self.verdicts.append((k / s.rate, v))
         if self._since is None or moving or not m.same(v.d, self._level, q, Y):
             self._since, self._level = k, v.d          # the level's age: since it settled where it is now
-            self._unsteady = k
         elif v.best == "wrench" and k - self._since >= S and self._still >= S:
             self._held = v.d                           # a wrench holding the arm still: a return may come under it
         if owed and (v.best == "noise" or v.best == "payload" and k - self._since >= s.window):
@@ -385,14 +373,11 @@ class RME:
             self.changes_not_payload, self._wrench = self.changes_not_payload + 1, True
 
     def _owed(self):
-        """The estimate on the full window a change first estimated on the short one (or in motion) is owed, against
-        the level before that change; made only while the level is the compensation's own, noise's or a payload's (not
-        a wrench's holding the arm still). At rest it settles the debt; in motion (the payload's inertia in its
-        regressor, friction in its noise) it is made once, as soon as the window holds the change alone and the level
-        no longer moves, and the one at rest is still owed."""
-        rest, level = self._still >= self.settings.window, self._refine
-        self._refine, self._refine_moving = None if rest else level, False
-        return self._estimate_now(self.settings.window, level, "at rest" if rest else "in motion", refine=not rest)
+        """The estimate on the full window at rest a change first estimated on the short one (or in motion) is owed,
+        against the level before that change; made only while the level is the compensation's own, noise's or a
+        payload's (not a wrench's holding the arm still)."""
+        level, self._refine = self._refine, None
+        return self._estimate_now(self.settings.window, level, "at rest", refine=False)
 
     def _algorithm_1(self, q, r, J):
         """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window, referred to
@@ -417,18 +402,16 @@ class RME:
         what remains is the whole payload's torque), now or as a job on the executor."""
         idx = np.arange(self._k - W, self._k) % len(self._q)
         Qw, Tw = self._q[idx], self._tau[idx] - level
-        Dw = self._dq[idx] if self.detector is None else None   # (Algorithm 1: the paper's regressor, the weight's)
         m = self.model
         now = None if m.reference is None else m.mean(self.settings.changes.short) - m.reference.level
         if self.correction is not None:
             Tw = Tw - self.correction.correction(Qw, self._dq[idx])
         if self.executor is None:
-            return self._decided(*self._estimate(Qw, Tw, Dw), level, kind, refine, departure=now)
-        job = (Qw, Tw) if Dw is None else (Qw, Tw, Dw)
+            return self._decided(*self._estimate(Qw, Tw), level, kind, refine, departure=now)
         prepare = getattr(self.executor, "prepare", None)
         if prepare is not None:
-            prepare(*job)
-        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, *job), asked=self._k,
+            prepare(Qw, Tw)
+        self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw), asked=self._k,
                          departure=now)
 
     def _decided(self, e, S, level, kind, refine, asked=None, departure=None):
@@ -445,10 +428,6 @@ class RME:
                         f"arm carries (max_mass {s.max_mass} kg, max_com {s.max_com} m)")
             self._refused = self.model.mean(s.changes.short) - self.model.reference.level \
                 if self.model.reference is not None else None
-            return
-        if kind == "in motion" and e.std[0] ** 2 >= self.model.compensated[0, 0]:
-            e.accepted = False               # (still owed at rest: the window's friction blurred what it adds)
-            e.reason = "it knows the mass less well than the estimate it would refine"
             return
         delay = (math.ceil(e.seconds * s.rate) if s.asynchronous else 0) if self.executor is None else 1
         self._due = _Due(e, self._k + delay, kind, refine, level, departure=departure)
@@ -469,7 +448,7 @@ class RME:
         phi = phi_of(theta)
         if due.kind == "back":               # the change undone: not a state to return to (a press let go)
             self.payloads.forget(phi)
-        elif due.kind == "detection" and self._k - self._held_since >= self.settings.changes.patience * s.rate:
+        elif due.kind != "at rest" and self._k - self._held_since >= self.settings.changes.patience * s.rate:
             self.payloads.remember(self._phi, self.model.compensated)   # a state the arm held (not an estimate
         self._held_since = self._k                                      #   of a change the next one corrected)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
@@ -481,7 +460,6 @@ class RME:
         due.estimate.applied = self._k / self.settings.rate
         self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
         self._refine = due.level if due.refine else None
-        self._refine_moving = due.refine and due.kind == "detection"
         self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
         if due.kind != "back" and due.departure is not None:
             self._refused = due.departure - d            # (the level it was made of, under the new compensation)

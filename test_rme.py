@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from changes import ChangeSettings
-from dynamics import PANDA_XML, Robot, phi_of, skew
-from rme import RME, RMESettings
+from dynamics import PANDA_XML, Robot, skew
+from rme import RMESettings
 from cpic import JointHold
 from experiments.episodes import measure as record
 from sim import N, Q_READY, Plant, PlantConfig
@@ -151,46 +151,6 @@ def test_body_regressor_equals_plant_torque_difference_under_motion():
     q = Q[0]
     np.testing.assert_allclose(ROBOT.body_regressor(q, np.zeros(N), np.zeros(N))[:, :4],
                                ROBOT.payload_regressor(q), atol=1e-12)
-
-
-def _swing(f, T=200, dt=1e-3):
-    """A smooth joint motion about the ready pose: q, dq, ddq (T, n) in closed form, frequencies about f [Hz]."""
-    t = np.arange(T)[:, None] * dt
-    A, w = np.array([0.3, 0.2, 0.3, 0.25, 0.4, 0.3, 0.5]), 2 * np.pi * f * np.array([1.0, 1.3, 0.8, 1.5, 2.0, 1.1, 1.7])
-    return Q_READY + A * np.sin(w * t + 1), A * w * np.cos(w * t + 1), -A * w * w * np.sin(w * t + 1)
-
-
-def test_moving_payload_regressor_is_mujocos_body_regressor_from_dq_alone():
-    """From q and dq only (accelerations differentiated), the moving regressor is MuJoCo's body regressor's (m, m r)
-    columns to a share of the motion's part that shrinks with the motion's frequency (a local quadratic's error);
-    at rest it is the static one."""
-    errors = []
-    for f in (0.5, 0.25):
-        q, dq, ddq = _swing(f)
-        _, R, J = ROBOT.kinematics(q)
-        moving, exact = ROBOT.payload_regressor_moving(J, R, dq, 1e-3), ROBOT.body_regressor(q, dq, ddq)[:, :, :4]
-        errors.append(np.abs(moving - exact).max() / np.abs(exact - ROBOT.payload_regressor(q)).max())
-    assert errors[0] < 0.02 and errors[1] < errors[0] / 2, errors
-    q = np.repeat(Q_READY[None], 50, axis=0)
-    _, R, J = ROBOT.kinematics(q)
-    np.testing.assert_allclose(ROBOT.payload_regressor_moving(J, R, np.zeros_like(q), 1e-3),
-                               ROBOT.payload_regressor(q), atol=1e-12)
-
-
-def test_a_window_in_motion_is_estimated_with_the_payloads_inertia_when_dq_is_given():
-    """tau_ext of a point mass swung at 0.5 Hz (MuJoCo's body regressor, the sensor's noise added): given dq the
-    estimate's mass is within 2 %; the weight alone reads the same window several times further off."""
-    rng = np.random.default_rng(5)
-    q, dq, ddq = _swing(0.5)
-    est = RME(robot=ROBOT, rng=np.random.default_rng(0))
-    off = {True: [], False: []}
-    for _ in range(4):
-        theta = np.array([rng.uniform(0.5, 2.5), *rng.uniform(-0.05, 0.05, 2), rng.uniform(0.0, 0.1)])
-        tau = ROBOT.body_regressor(q, dq, ddq)[:, :, :4] @ phi_of(theta) + 0.01 * rng.normal(size=q.shape)
-        for given in (True, False):
-            e = est.estimate(q, tau, baseline=np.zeros(N), dq=dq + 1e-3 * rng.normal(size=q.shape) if given else None)
-            off[given].append(abs(e.mean[0] / theta[0] - 1))
-    assert max(off[True]) < 0.02 and np.median(off[False]) > 3 * max(off[True]), off
 
 
 def test_from_xml_works_on_a_three_joint_planar_arm(tmp_path):

@@ -41,7 +41,6 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
         rec = run(plant, ctrl, seconds, estimator=est, events=[PayloadChange(t_change, theta[0], theta[1:])], q0=q0)
         Q = np.concatenate([rec.q[1:], [rec.last.q]])             # the samples after each step
         TAU = np.concatenate([rec.tau_ext[1:], [rec.last.tau_ext]])
-        DQ = np.concatenate([rec.dq[1:], [rec.last.dq]])
         k_change = int(round(t_change / plant.dt)) - 1              # sample i is at time (i + 1) dt
         hits = [e for e in est.history if e.t > t_change]
         det = [e for e in hits if e.kind == "detection"]            # not a later estimate (monitor, at rest, a held
@@ -50,21 +49,20 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
         start = k_det - RMESettings().detection_window
         rest = [e for e in hits if e.kind == "at rest"]
         k_rest = int(round(rest[0].t / plant.dt)) if rest else len(Q)
-        out.append(dict(theta=theta, q=Q[start:start + 300], tau=TAU[start:start + 300] - ref, dq=DQ[start:start + 300],
-                        detected=bool(det),
+        out.append(dict(theta=theta, q=Q[start:start + 300], tau=TAU[start:start + 300] - ref, detected=bool(det),
                         delay=(k_det - k_change) * plant.dt * 1e3, q_rest=Q[k_rest - 300:k_rest],
                         tau_rest=TAU[k_rest - 300:k_rest] - ref, at_rest=bool(rest)))
     return out
 
 
-def mse_table(est, data, length, at_rest=True, moving=False):
+def mse_table(est, data, length, at_rest=True):
     """MSE per parameter of est.estimate on each dataset's window of `length` samples: the one ending where RME made
-    its estimate at rest (at_rest) or the one starting where the pipeline's window at the detection starts (moving:
-    given its dq, the payload's inertia in the regressor, as the stream estimates); and the wall times."""
+    its estimate at rest (at_rest) or the one starting where the pipeline's window at the detection starts; and the
+    wall times."""
     err, secs = [], []
     for d in data:
         q, tau = (d["q_rest"][-length:], d["tau_rest"][-length:]) if at_rest else (d["q"][:length], d["tau"][:length])
-        e = est.estimate(q, tau, referred=True, dq=d["dq"][:length] if moving and not at_rest else None)
+        e = est.estimate(q, tau, referred=True)
         err.append(e.mean - d["theta"])
         secs.append(e.seconds)
     return np.mean(np.square(err), axis=0).tolist(), secs
@@ -102,7 +100,6 @@ def tables(n_datasets=100, trials=10, seed=0, log=print, calibration=None):
                if k != "RME"}   # beside them
     w = RMESettings().detection_window                               # the window the pipeline estimates at detection
     t1_first = {k: mse_table(e, data, w, at_rest=False)[0] for k, e in (("nn", nn), ("zero", zero))}
-    t1_first["nn, inertia"] = mse_table(nn, data, w, at_rest=False, moving=True)[0]
     t4 = {str(L): mse_table(nn, data, L)[0] for L in (50, 100, 200, 300)}
     t4_first = {str(L): mse_table(nn, data, L, at_rest=False)[0] for L in (50, 100, 200, 300)}
     log(f"tables 1 and 4 done at {time.perf_counter() - t0:.0f} s")
@@ -139,9 +136,6 @@ def print_tables(res):
         print(f"  {k:>13}:   {fmt(v)}     (baseline, the same windows)")
     for k in ("nn", "zero"):
         print(f"  first {k:>5}:    {fmt(res['table1_first'][k])}   (windows at the detection)")
-    if "nn, inertia" in res["table1_first"]:
-        print(f"  first    nn:    {fmt(res['table1_first']['nn, inertia'])}   (the same, the payload's inertia in "
-              f"the regressor)")
     for k, v in res["table4"].items():
         print(f"Table 4 {k:>3} ms:  {fmt(v)}     {fmt(PAPER['table4'][k])}")
     for k, v in res["table4_first"].items():

@@ -13,7 +13,6 @@ import numpy as np
 NAMES = ("m [kg]", "rx [m]", "ry [m]", "rz [m]")
 COLORS = {"without": "tab:red", "with": "tab:blue", "with + friction": "tab:green"}
 STYLE = {"detection": ("v", "detection (its estimate)"), "at rest": ("s", "estimate at rest"),
-         "in motion": ("D", "full window in motion"),
          "back": ("X", "back to an earlier payload")}
 
 

@@ -65,12 +65,10 @@ def print_estimates(log, label="RME"):
         print(f"  {label} detected no change")
     for e in log["history"]:
         k = min(np.searchsorted(t, e.t), len(t) - 1)
-        when = (f"applied at {e.applied:.3f} s" if e.accepted else f"not applied: {e.reason}" if e.kind == "in motion"
-                else f"refused: {e.reason} (not a load)")
+        when = (f"applied at {e.applied:.3f} s" if e.accepted else f"refused: {e.reason} (not a load)")
         if e.accepted and e.reason:
             when += f" ({e.reason})"
         what = {"detection": "finds a new payload", "at rest": "estimates again, arm at rest",
-                "in motion": "estimates again on the full window, arm moving",
                 "back": "returns to an earlier payload"}.get(e.kind, "estimates")
         blind = " (rz: prior, not observed at this pose)" if e.kind != "back" and not e.observed[3] else ""
         print(f"  {e.t:6.3f} s  {label} {what} [{e.kind}]; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "

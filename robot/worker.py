@@ -1,6 +1,6 @@
 """Where RME's streamed estimates (network prior + VI, Sec. 4) run beside the 1 kHz loop: a thread of this process
 (ThreadWorker) or a worker process that owns its own estimator, rebuilt from picklable parts (ProcessWorker). Both
-fit RME's executor protocol: submit(RME._estimate, q, tau[, dq]) -> a future with done() / result() -> (Estimate, S)."""
+fit RME's executor protocol: submit(RME._estimate, q, tau) -> a future with done() / result() -> (Estimate, S)."""
 from __future__ import annotations
 
 import mmap
@@ -323,7 +323,7 @@ def _poller(conn):
 
 def _serve(fd: int, boxes_fd: int):
     """The worker process: receive (spec, nice), build the estimator, say "ready", then answer each job, b"W" + the
-    header of (q, tau[, dq]) in the jobs box or a pickled ("estimate", (q, tau[, dq]), shared), with est._estimate: its
+    header of (q, tau) in the jobs box or a pickled ("estimate", (q, tau), shared), with est._estimate(q, tau): its
     numbers in the results box if the job came through the boxes (_result reads them), else pickled; until a
     pickled ("stop", (), False) or the loop's end of the socket closes."""
     conn, boxes = Connection(fd), _Boxes(boxes_fd)

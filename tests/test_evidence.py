@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import minimize
 
 import vi
-from dynamics import Q_READY, Robot, phi_of
+from dynamics import Q_READY, Robot
 from rme import RME
 
 ROBOT = Robot.panda()
@@ -111,15 +111,9 @@ def _tilted_hold(seed=0, theta=(1.0, 0.03, -0.02, 0.13)):
 
 @pytest.mark.slow
 def test_a_load_carried_to_a_new_orientation_stays_compensated():
-    """The load estimated at the ready pose, then the ee turned 0.45 rad about world x and resting there: the
-    compensation is the load's at the end (mass within 2 %, rx within 5 mm, its torque at the resting pose within 2 %
-    of the load's largest); the CoM along gravity, which each pose leaves unobserved (rz at the ready pose, a mix of
-    ry and rz at the turned one), is whatever the estimates made on one window each say (combining the windows of two
-    poses: experiments.explore)."""
+    """The load estimated at the ready pose, then the ee turned 0.45 rad and resting there: the compensation is the
+    load's at the end (mass within 2 %, rx, ry within 5 mm); rz, which the first pose did not observe, is whatever
+    the estimates made on one window each say (combining the windows of two poses: experiments.explore)."""
     est, theta = _tilted_hold()
-    history = [(e.t, e.kind, e.mean.round(3)) for e in est.history]
-    assert abs(est.theta[0] - theta[0]) < 0.02 * theta[0], history
-    assert abs(est.theta[1] - theta[1]) < 0.005, history
-    Y = est.robot.payload_regressor(est._q[(est._k - 1) % len(est._q)])           # at the last sample's pose
-    load = Y @ phi_of(theta)
-    assert np.abs(Y @ phi_of(est.theta) - load).max() < 0.02 * np.abs(load).max(), history
+    assert abs(est.theta[0] - theta[0]) < 0.02 * theta[0], [(e.t, e.kind, e.mean.round(3)) for e in est.history]
+    assert np.abs(est.theta[1:3] - theta[1:3]).max() < 0.005
