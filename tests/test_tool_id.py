@@ -467,3 +467,37 @@ def test_the_noise_std_of_rows_with_ar1_correlated_noise_matches_the_closed_form
     assert np.all(np.abs(spread - 1) < 0.18) and abs(spread.mean() - 1) < 0.08, spread
     assert np.all(np.abs(by_sandwich - 1) < 0.08), by_sandwich
     assert np.all(by_white < 0.6), by_white             # the correlation matters: 1 / 2.1 without it
+
+
+def test_a_stale_row_gets_the_torque_the_robot_applied_there_not_its_neighbours_mean():
+    """A log where tau_J measures the command of the cycle before plus a smooth torque (gravity, offset), with
+    rows that repeat the last one (6 %, as the realistic plant's packets) and a controller that reacts to each
+    repeated state by a step in its next command: the filled tau_J at those rows is the applied torque (the
+    command before plus the smooth part: linear interpolation of a 2 Nm, 0.5 Hz sine over 2 ms misses it by at most
+    2 (pi)^2 (1 ms)^2 / 2 = 9.9e-6 Nm), where
+    interpolating tau_J across the row misses it by half the step."""
+    from robot.identify import _stale_filled
+    rng = np.random.default_rng(72)
+    T, n = 4000, 7
+    t = np.arange(T) * 1e-3
+    smooth = 2.0 * np.sin(2 * np.pi * 0.5 * t)[:, None] + np.arange(n)
+    stale, last = np.zeros(T, bool), -3
+    for k in np.flatnonzero(rng.random(T) < 0.06):             # repeats 3 rows apart at least: each one's
+        if k >= 2 and k - last >= 3:                           # neighbours measure no other step
+            stale[k], last = True, k
+    cmd = np.cos(2 * np.pi * 0.7 * t)[:, None] * np.ones(n)
+    kick = rng.uniform(0.05, 0.2, size=(T, n))
+    cmd[stale] += kick[stale]                                   # the step taken on the repeated state
+    applied = np.concatenate([cmd[:1], cmd[:-1]]) + smooth      # what tau_J measures at each row
+    q = np.cumsum(rng.normal(size=(T, n)), axis=0)
+    raw = {"t": t, "q": q, "dq": q.copy(), "tau_J": applied.copy()}
+    for k in np.flatnonzero(stale):                             # the last row again
+        for key in ("q", "dq", "tau_J"):
+            raw[key][k] = raw[key][k - 1]
+    out, filled = _stale_filled(raw, cmd)
+    assert filled == stale.sum() > 100
+    assert np.abs(out["tau_J"] - applied).max() < 1e-5
+    i = np.arange(T)
+    across = np.stack([np.interp(i, i[~stale], raw["tau_J"][~stale, j]) for j in range(n)], axis=1)
+    missed = np.abs(across - applied)[stale]
+    assert np.all(np.abs(missed - kick[stale] / 2) < 1e-3)
