@@ -23,13 +23,16 @@ LAGS = ((8, 16), (8, 16, 24))   # rows (10 samples each): beyond the 77-sample f
 
 
 def traced_run(robot, seed, tool, run, center=None):
-    """run_motion on the plant of `seed` and every read's true qpos, qvel, qacc and applied torque (T, 28)."""
-    backend, trace = sim_backend(seed, tool, run), []
+    """run_motion on the plant of `seed` and every read's true qpos, qvel, qacc, applied torque and whether the read
+    repeated the last one (a stale packet: 1) (T, 29)."""
+    backend, trace, last = sim_backend(seed, tool, run), [], [None]
     read = backend.read
 
     def read_and_trace():
         s, d = read(), backend.plant.data
-        trace.append(np.concatenate([d.qpos, d.qvel, d.qacc, d.ctrl]))
+        stale = last[0] is not None and np.array_equal(s.tau_J, last[0])
+        last[0] = np.array(s.tau_J, dtype=float)
+        trace.append(np.concatenate([d.qpos, d.qvel, d.qacc, d.ctrl, [float(stale)]]))
         return s
     backend.read = read_and_trace
     log = run_motion(backend, robot, franka.run_loop, center=center)[0]
@@ -60,7 +63,7 @@ def seed_data(robot, seed):
     arm = plant.model
     arm.dof_armature[:] = 0.0                                          # the reference's plant: no payload
     out = {"tool": tool, "Y": robot.body_regressor(run.q[rows], run.dq[rows], run.ddq[rows]),
-           "tau": (torque_of(robot, run)[:T] - torque_of(robot, ref)[:T])[rows], "parts": {}}
+           "tau": (torque_of(robot, run)[:T] - torque_of(robot, ref)[:T])[rows], "parts": {}, "samples": T}
     cols = {}
     for sign, name, log, trace in ((1, "t", run, run_trace), (-1, "r", ref, ref_trace)):
         q, v = trace[:T, :7], smooth(trace[:T, 7:14])
@@ -75,6 +78,7 @@ def seed_data(robot, seed):
                  "torque sensor": smooth(trace[:T, 21:28])[rows] - log.tau_J[:T][rows]}
         for k, p in parts.items():
             out["parts"][k] = out["parts"].get(k, 0.0) + sign * p
+        out["stale cycles"] = out.get("stale cycles", 0.0) + sign * stale_torque(trace[:T])[rows]
         cols[name] = (log.dq[rows], log.ddq[rows], v, a)
     (vt, at), (vr, ar) = (ti._from_q(log.q[:T], 1e-3, S.q_window) for log in (run, ref))
     out["Z_q"] = columns(vt[rows], at[rows], vr[rows], ar[rows])
@@ -88,6 +92,14 @@ def seed_data(robot, seed):
     out["parts"]["what is left"] = e - sum(out["parts"].values())
     out["parts"]["all"] = e
     return out
+
+
+def stale_torque(trace):
+    """(T, 7) the applied torque less its interpolation over the reads that were not stale, filtered like tau_J: the
+    torque of the cycles that acted on a repeated state, which the log (its stale rows dropped, tau_J interpolated)
+    never sees; part of "the torque sensor"."""
+    ctrl, keep, t = trace[:, 21:28], trace[:, 28] == 0, np.arange(len(trace))
+    return smooth(ctrl - np.stack([np.interp(t, t[keep], ctrl[keep, j]) for j in range(ctrl.shape[1])], axis=1))
 
 
 def columns(dq_t, ddq_t, dq_r, ddq_r):

@@ -66,10 +66,38 @@ def run_motion(backend, robot: Robot, run_loop, settings: MotionSettings = Motio
     return log, summary, controller
 
 
-def prepared(log: dict):
-    """A franka.py run's arrays as a diagnosis Log (stale rows dropped, filtered as LOG says, ddq)."""
-    return prepare({k: np.asarray(log[k]) for k in ("t", "q", "dq", "tau_J", "tau_ext") if k in log}, LOG,
-                   source="run")
+def prepared(log: dict, fill_stale: bool = False):
+    """A franka.py run's arrays as a diagnosis Log (filtered as LOG says, ddq); stale rows (q, dq, tau_J the last
+    row's again) dropped, or with fill_stale and the run's tau_cmd filled by _stale_filled (not the fit's default:
+    on the benchmark's seeds 0-9 its intervals covered less, docs/tool_identification.md); info counts them."""
+    raw = {k: np.asarray(log[k], dtype=float) for k in ("t", "q", "dq", "tau_J", "tau_ext") if k in log}
+    notes = {}
+    if fill_stale and "tau_cmd" in log and "tau_J" in raw and len(raw["t"]) > 2:
+        raw, notes["stale_rows_filled"] = _stale_filled(raw, np.asarray(log["tau_cmd"], dtype=float))
+    return prepare(raw, LOG, source="run", notes=notes)
+
+
+def _stale_filled(raw: dict, tau_cmd):
+    """(raw, rows filled): at a row that repeats the last one the robot still applied the command sent the cycle
+    before, which tau_J then measures (a state read at cycle k follows the command of cycle k - 1); interpolating
+    tau_J over such a row misses the step the controller took on the repeated state (the next command). tau_J there
+    is the previous command plus tau_J - previous command interpolated over the rows kept (gravity, offsets: smooth),
+    q and dq interpolated, as diagnosis.logs.prepare would."""
+    same = np.ones(len(raw["t"]) - 1, bool)
+    for k in ("q", "dq", "tau_J"):
+        same &= np.all(raw[k][1:] == raw[k][:-1], axis=1)
+    stale = np.concatenate([[False], same])
+    if not stale.any():
+        return raw, 0
+    before = np.concatenate([tau_cmd[:1], tau_cmd[:-1]])
+    i, keep = np.arange(len(stale)), ~stale
+    interp = lambda v: np.stack([np.interp(i, i[keep], v[keep, j]) for j in range(v.shape[1])], axis=1)
+    out = dict(raw)
+    out["q"], out["dq"] = interp(raw["q"]), interp(raw["dq"])
+    out["tau_J"] = np.where(stale[:, None], before + interp(raw["tau_J"] - before), raw["tau_J"])
+    if "tau_ext" in raw:
+        out["tau_ext"] = interp(raw["tau_ext"])
+    return out, int(stale.sum())
 
 
 def torque_of(robot: Robot, log) -> np.ndarray:
