@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from diagnosis.logs import LogConfig, load_log, prepare
+from diagnosis.logs import LogConfig, _interp, _stale_rows, load_log, prepare
 from dynamics import Robot
 from motion.inertia import rigid_body
 from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
@@ -83,15 +83,12 @@ def _stale_filled(raw: dict, tau_cmd):
     tau_J over such a row misses the step the controller took on the repeated state (the next command). tau_J there
     is the previous command plus tau_J - previous command interpolated over the rows kept (gravity, offsets: smooth),
     q and dq interpolated, as diagnosis.logs.prepare would."""
-    same = np.ones(len(raw["t"]) - 1, bool)
-    for k in ("q", "dq", "tau_J"):
-        same &= np.all(raw[k][1:] == raw[k][:-1], axis=1)
-    stale = np.concatenate([[False], same])
+    stale = _stale_rows(raw)
     if not stale.any():
         return raw, 0
     before = np.concatenate([tau_cmd[:1], tau_cmd[:-1]])
     i, keep = np.arange(len(stale)), ~stale
-    interp = lambda v: np.stack([np.interp(i, i[keep], v[keep, j]) for j in range(v.shape[1])], axis=1)
+    interp = lambda v: _interp(i, i[keep], v[keep])
     out = dict(raw)
     out["q"], out["dq"] = interp(raw["q"]), interp(raw["dq"])
     out["tau_J"] = np.where(stale[:, None], before + interp(raw["tau_J"] - before), raw["tau_J"])
