@@ -408,18 +408,19 @@ class Robot:
         theta, _ = as_states("theta", theta, 4, allow_window=False)
         return self.payload_regressor(q) @ phi_of(theta[0])
 
-    def body_regressor(self, q, dq, ddq):
+    def body_regressor(self, q, dq, ddq, gravity: bool = True):
         """Y (n, 10) / (T, n, 10): joint torque that a rigid payload applies to the arm under motion,
         tau = Y pi, pi = (m, m cx, m cy, m cz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz), inertia about the ee origin,
         all in the ee frame (pinocchio's order). Same sign as payload_torque: Y(q, 0, 0)[:, :4] == payload_regressor(q).
+        gravity False: the motion's part alone, Y(q, dq, ddq) - Y(q, 0, 0) (its weight left out), in the same pass.
 
         Newton-Euler in the ee frame, a = (acceleration of the origin) - g, w, al = angular velocity, acceleration:
           f = m a + al x h + w x (w x h),   n = I al + w x (I w) + h x a,   h = m c;  tau = -(Jv^T R f + Jw^T R n).
         """
         args = [as_states(k, v, self.n) for k, v in (("q", q), ("dq", dq), ("ddq", ddq))]
-        return self._each(self._body_regressor_one, *args)
+        return self._each(lambda *x: self._body_regressor_one(*x, gravity), *args)
 
-    def _body_regressor_one(self, q, dq, ddq):
+    def _body_regressor_one(self, q, dq, ddq, gravity=True):
         m, d = self.model, self.data
         self._kin(q, dq)
         mujoco.mj_comVel(m, d)
@@ -428,13 +429,13 @@ class Robot:
         vel, acc = np.empty(6), np.empty(6)
         mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_SITE, self.site, vel, 1)      # [w; v] ee frame
         mujoco.mj_objectAcceleration(m, d, mujoco.mjtObj.mjOBJ_SITE, self.site, acc, 1)  # [al; a - g]
-        w, al, a = vel[:3], acc[:3], acc[3:]
+        J, R = self._jac(), d.site_xmat[self.site].reshape(3, 3)
+        w, al, a = vel[:3], acc[:3], acc[3:] if gravity else acc[3:] + R.T @ self.g
         A = np.zeros((6, 10))                         # [f; n] = A pi
         A[:3, 0] = a
         A[:3, 1:4] = skew(al) + skew(w) @ skew(w)
         A[3:, 1:4] = -skew(a)
         A[3:, 4:] = _inertia_times(al) + skew(w) @ _inertia_times(w)
-        J, R = self._jac(), d.site_xmat[self.site].reshape(3, 3)
         return -(J[:3].T @ R @ A[:3] + J[3:].T @ R @ A[3:])
 
 

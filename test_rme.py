@@ -138,16 +138,21 @@ def test_body_regressor_equals_plant_torque_difference_under_motion():
         mass, c = rng.uniform(0.2, 2.0), rng.uniform(-0.1, 0.1, 3)
         A = rng.normal(size=(3, 3))
         Ic = A @ A.T * 0.005 + 1e-3 * np.eye(3)                       # about the CoM, ee frame
-        taus = []
-        for payload in ((0.0, np.zeros(3), None), (mass, c, Ic)):
-            plant.set_payload(*payload)
-            d.qpos[:], d.qvel[:], d.qacc[:] = q, dq, ddq
-            mujoco.mj_inverse(m, d)
-            taus.append(d.qfrc_inverse.copy())
+        taus, g = [], m.opt.gravity.copy()
+        for weight in (g, np.zeros(3)):                               # with gravity, then in free space
+            m.opt.gravity[:] = weight
+            for payload in ((0.0, np.zeros(3), None), (mass, c, Ic)):
+                plant.set_payload(*payload)
+                d.qpos[:], d.qvel[:], d.qacc[:] = q, dq, ddq
+                mujoco.mj_inverse(m, d)
+                taus.append(d.qfrc_inverse.copy())
+        m.opt.gravity[:] = g
         Io = Ic + mass * (c @ c * np.eye(3) - np.outer(c, c))         # parallel axis to the ee origin
         pi = np.array([mass, *(mass * c), Io[0, 0], Io[0, 1], Io[1, 1], Io[0, 2], Io[1, 2], Io[2, 2]])
         # same sign as payload_torque: the torque the payload applies to the arm = -(extra drive torque)
         np.testing.assert_allclose(ROBOT.body_regressor(q, dq, ddq) @ pi, -(taus[1] - taus[0]), atol=1e-9)
+        np.testing.assert_allclose(ROBOT.body_regressor(q, dq, ddq, gravity=False) @ pi, -(taus[3] - taus[2]),
+                                   atol=1e-9)
     q = Q[0]
     np.testing.assert_allclose(ROBOT.body_regressor(q, np.zeros(N), np.zeros(N))[:, :4],
                                ROBOT.payload_regressor(q), atol=1e-12)

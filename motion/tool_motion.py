@@ -129,8 +129,7 @@ def point_mass_inertial(robot: Robot, phi, q, dq, ddq) -> np.ndarray:
     phi = np.asarray(phi, dtype=float)
     if phi[0] < 0.05:
         return np.zeros(robot.n)
-    pi = rigid_body(phi[0], phi[1:] / phi[0])
-    return robot.body_regressor(q, dq, ddq) @ pi - robot.payload_regressor(q) @ phi
+    return robot.body_regressor(q, dq, ddq, gravity=False) @ rigid_body(phi[0], phi[1:] / phi[0])
 
 
 class PushWatch:
