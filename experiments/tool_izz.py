@@ -140,8 +140,7 @@ def fit_with(d, Z, tau=None, moved=None):
     tau = d["tau"] if tau is None else tau
     pi, info, Yr, tr, Yw, tw, Zw = ti._weighted_fit(d["Y"], tau, Z, settings, S.drive_share)
     value, J = ti._parameters(pi), ti._jacobian(pi)
-    noise = np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),
-                       np.einsum("ki,ij,kj->k", J, ti._sandwich(Yr, tr, info, S), J))
+    noise = ti._noise_variance(J, info, Yr, tr, S)
     spread = ti._drive_model_spread(Yw, tw, Zw, value, settings)
     if moved is not None:
         spread = np.hypot(spread, ti._parameters(ti._fit(Yw, tw, moved(Zw), settings)[0]) - value)

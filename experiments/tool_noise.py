@@ -37,8 +37,7 @@ def fit_parts(Y, tau, Z):
     """The fit as fit_tool's referred one: values (10,), noise std (10,) and the linear response c -> (10,)."""
     pi, info, Yr, tr, Yw, tw, Zw = ti._weighted_fit(Y, tau, Z, FIT, S.drive_share)
     J = ti._jacobian(pi)
-    std = np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),
-                             np.einsum("ki,ij,kj->k", J, ti._sandwich(Yr, tr, info, S), J)))
+    std = np.sqrt(ti._noise_variance(J, info, Yr, tr, S))
     scale, w2 = tw / np.where(tau == 0, 1.0, tau), info.weights ** 2
     G = np.einsum("j,tji,tjk->ik", w2, Yr, Yr) + np.diag(1.0 / np.square([*FIT.prior_std, *[FIT.inertia_std] * 6]))
     respond = lambda c: J @ np.linalg.solve(G, np.einsum("j,tji,tj->i", w2, Yr, ti.partial_out(Yw, c * scale, Zw)[1]))

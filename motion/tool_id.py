@@ -147,8 +147,7 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
     pi, info, Yr, tr, Y, tau, Z = _weighted_fit(Y, tau, Z, fit_settings, share)
     tool = tool_of_params(pi)
     value, J = _parameters(pi), _jacobian(pi)
-    noise = np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),           # white residual, and correlated
-                       np.einsum("ki,ij,kj->k", J, _sandwich(Yr, tr, info, s), J))
+    noise = _noise_variance(J, info, Yr, tr, s)
     spread = reference is not None and s.state_difference and s.drive_spread
     drives = _drive_model_spread(Y, tau, Z, value, fit_settings) if spread else np.zeros(len(NAMES))
     std = np.sqrt(np.maximum(noise, 0.0) + drives ** 2)
@@ -197,6 +196,13 @@ def _fit(Y, tau, Z, settings: FitSettings):
     Yr, tr = partial_out(Y, tau, Z) if np.any(Z) else (Y, tau)
     pi, info = fit_inertia(Yr, tr, np.zeros(4), None, settings)
     return pi, info, Yr, tr
+
+
+def _noise_variance(J, info: FitInfo, Yr, tr, s: ToolFitSettings) -> np.ndarray:
+    """(len(NAMES),) the noise's variance of each reported value (J (len(NAMES), 10) their Jacobian in pi): the larger
+    of the white residual's (info.cov) and the one with the residual's correlation (_sandwich)."""
+    return np.maximum(np.einsum("ki,ij,kj->k", J, info.cov, J),
+                      np.einsum("ki,ij,kj->k", J, _sandwich(Yr, tr, info, s), J))
 
 
 def _drive_model_spread(Y, tau, Z, value, settings: FitSettings) -> np.ndarray:
