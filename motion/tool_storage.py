@@ -37,8 +37,8 @@ def storage_check(tool: Tool, q0=Q_READY, settings: MotionSettings = MotionSetti
     tau_f the compensated tool's point mass's inertial torque along the reference (settings.feedforward, as the
     watch's point mass in the motion), the bracket the set point's drive tau_sp, the rest a spring about q_d (stored
     in S) and a damper. With S = 1/2 dq^T M dq + 1/2 (q - q_d)^T Kp (q - q_d) (M: the plant's own, tool included,
-    from MuJoCo), over each step k at the set point of step k: rise_k = S(x_k+1) - S(x_k) - (q_k+1 - q_k)^T tau_sp,k; moving the set point from
-    q_d,k to q_d,k+1 adds its work on the spring. tolerance [J]: rounding and the 1 ms step (a spring held over a
+    from MuJoCo), over each step k at the set point of step k: rise_k = S(x_k+1) - S(x_k) - (q_k+1 - q_k)^T tau_sp,k;
+    moving the set point from q_d,k to q_d,k+1 adds its work on the spring. tolerance [J]: rounding and the 1 ms step (a spring held over a
     step of 0.4 mrad stores 1/2 Kp dq^2 dt^2, 4e-6 J at 50 Nm/rad). seconds: default the whole motion."""
     from sim import Plant                               # the simulator (a heavy import) only when a check runs
     plant = Plant()

@@ -136,7 +136,8 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     # the press acting, the press's; the same reading without the press: the sideways push's (a detection's lag)
     late = _trace(4.0, [(1.7, 2.6, 1.5)])
     side, down = (1.0, np.array([15.0, 0.0, 0.0]), 0.5), (1.2, np.array([0.0, 0.0, -20.0]), 1.3)
-    assert [x["compensated"] for x in score(late, dict(changes=[], pushes=[side, down]), cfg)["pushes"]] == [False, True]
+    pushes = score(late, dict(changes=[], pushes=[side, down]), cfg)["pushes"]
+    assert [x["compensated"] for x in pushes] == [False, True]
     assert score(late, dict(changes=[], pushes=[side]), cfg)["pushes"][0]["compensated"]
     sm = summarise([s], [p], cfg)
     assert sm["compensated"]["all"]["yes"] == 3 and sm["to_right_s"]["no_push"]["attach"]["median"] == pytest.approx(0.6)
