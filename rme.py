@@ -380,8 +380,8 @@ class RME:
         return self._estimate_now(self.settings.window, level, "at rest", refine=False)
 
     def _algorithm_1(self, q, r, J):
-        """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window, referred to
-        the torque before the change it found (its reference_torque), applied if plausible."""
+        """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window of tau_ext as it
+        is (the whole payload, as the paper does), applied if plausible."""
         s, lam = self.settings, self.detector.settings.lam
         if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
             A = J @ J.T                                                # (J J^T + lam I)^-1 J by Cholesky (LAPACK:
@@ -389,7 +389,7 @@ class RME:
             _, PJ, bad = lapack.dposv(A, J)
             self._fq, self._P = q, (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
         if self.detector.push(r, self._P @ r) and self._k >= self.detector.settings.window:
-            self._estimate_now(s.detection_window, self.detector.reference_torque.copy(), "detection", refine=False)
+            self._estimate_now(s.detection_window, np.zeros(self.robot.n), "detection", refine=False)
 
     def _gradient(self, q):
         """d G / d q (n, n) of the nominal gravity torque at q (central differences): the direction the robot

@@ -29,9 +29,8 @@ class RMESettings:
     max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
     changes: ChangeSettings = field(default_factory=ChangeSettings)   # what the residual holds (changes.py)
     detector: DetectorSettings | None = None   # None: the model of what changed decides (changes.py); a
-                                   #   DetectorSettings: Algorithm 1 fires each estimate instead (detector.py;
-                                   #   algorithm="as_printed" with ALGORITHM_1_CHECKS: the paper's, for its
-                                   #   reproduction)
+                                   #   DetectorSettings: Algorithm 1 as printed fires each estimate instead
+                                   #   (detector.py; the paper's, for its reproduction)
     vi: vi.VISettings = field(default_factory=vi.VISettings)
 
     def __post_init__(self):
@@ -59,7 +58,7 @@ class RMESettings:
     def detection_window(self) -> int:
         """Samples of the window estimated at a detection: the newest 2 changes.short (the level was steady over
         them), at most `window`; with Algorithm 1 (detector), those from its earliest stabilisation check on, which it
-        found settled after the change (150 with the default checks; 200 with detector.ALGORITHM_1_CHECKS)."""
+        found settled after the change (230, so `window`'s 200 with Alg. 1's own checks)."""
         d = self.detector
         if d is None:
             return min(self.window, 2 * self.changes.short)

@@ -9,7 +9,7 @@ import numpy as np
 
 import vi
 from dynamics import Robot, theta_of
-from detector import ALGORITHM_1_CHECKS, DetectorSettings
+from detector import DetectorSettings
 from rme import RME, Estimate, RMESettings
 
 RIDGE = 1e-6    # relative to trace(Y^T Y): keeps phi finite where rz is not seen (a level pose), pulls it to 0
@@ -52,5 +52,5 @@ class Algorithm1RME(RME):
     `python sim.py reliability --estimator experiments.baselines:Algorithm1RME`."""
 
     def __init__(self, robot: Robot | None = None, rng=None, **kwargs):
-        settings = RMESettings(detector=DetectorSettings(algorithm="as_printed", check_windows=ALGORITHM_1_CHECKS))
+        settings = RMESettings(detector=DetectorSettings())
         super().__init__(robot, rng=rng, settings=settings, **kwargs)

@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from cpic import CPIC, Attractor, JointHold
-from detector import ALGORITHM_1_CHECKS, Detector, DetectorSettings
+from detector import Detector, DetectorSettings
 from dynamics import Q_READY, Robot, phi_of
 from diagnosis.diagnose import diagnose
 from diagnosis.effect_model import Model
@@ -127,9 +127,9 @@ def cpic_benchmark(seconds=0.6, repeats=7) -> dict:
 
 
 def detector_benchmark(episodes=8, seed=0) -> dict:
-    """Detection latency on the realistic plant (random payloads 0.2-1.5 kg added at 1.0 s and removed at 2.5 s,
-    random poses near the ready pose, stiff and compliant holds), false detections (lateral pushes, free motion,
-    rest; totals over 3 plants), and the time per update."""
+    """Algorithm 1 as printed (detector.py) on the realistic plant: detection latency (random payloads 0.2-1.5 kg
+    added at 1.0 s and removed at 2.5 s, random poses near the ready pose, stiff and compliant holds), false
+    detections (lateral pushes, free motion, rest; totals over 3 plants), and the time per update."""
     rng = np.random.default_rng(seed)
     latencies, missed, extra = [], 0, 0
     for i in range(episodes):
@@ -147,14 +147,10 @@ def detector_benchmark(episodes=8, seed=0) -> dict:
         extra += len(fired) - hits                 # detections that answer no change of this episode
     pushes = [((15.0, 0, 0), 0.8, 1.0), ((0, 20.0, 0), 2.5, 0.6), ((8.0, -6.0, 0), 3.5, 1.5), ((30.0, 0, 0), 5.5, 0.2)]
     motion = lambda t: 0.3 * np.sin(np.pi * t) * np.array([1.0, 0.5, 0.0, 0.5, 0.0, 0.5, 0.0])
-    false = {}
-    for algorithm in ("referred", "as_printed"):
-        s = DetectorSettings(algorithm=algorithm, **({} if algorithm == "referred" else   # verbatim: Alg. 1's windows
-                                                    {"check_windows": ALGORITHM_1_CHECKS}))
-        plants = [np.random.default_rng(seed + i) for i in range(3)]
-        false[algorithm] = dict(pushes_7s=sum(len(detector_episode(7.0, p, pushes=pushes, settings=s)) for p in plants),
-                                motion_5s=sum(len(detector_episode(5.0, p, motion=motion, settings=s)) for p in plants),
-                                rest_5s=sum(len(detector_episode(5.0, p, settings=s)) for p in plants))
+    plants = [np.random.default_rng(seed + i) for i in range(3)]
+    false = dict(pushes_7s=sum(len(detector_episode(7.0, p, pushes=pushes)) for p in plants),
+                 motion_5s=sum(len(detector_episode(5.0, p, motion=motion)) for p in plants),
+                 rest_5s=sum(len(detector_episode(5.0, p)) for p in plants))
     pct = (lambda p: float(np.percentile(latencies, p))) if latencies else (lambda p: float("nan"))
     out = dict(events=2 * episodes, detected=len(latencies), missed=missed, extra_detections=extra,
                latency_ms_median=pct(50), latency_ms_p90=pct(90), latency_ms_max=pct(100),

@@ -126,8 +126,8 @@ def _edge_settings(rng):
     vi_edges = dict(sigma_prior=(1e3,) * 4, lr=1.0, clip_norm=1e3, noise_floor=10.0, noise_scale=1e3, adam_eps=1.0,
                     tol=10.0, map_steps=0, offset_std=10.0, motion_gain=100.0, motion_max=100.0, load_share=1.0,
                     slow_gain=10.0, observed_ratio=1.0, min_iterations=0, check_every=10000, average=0.0)
-    det_edges = dict(activation_threshold=1e12, stabilisation_threshold=1e12, stabilisation_quadratic=1.0,
-                     side_force_limit=1e4, refractory=0, lam=10.0)
+    det_edges = dict(activation_threshold=1e12, stabilisation_threshold=1e12, side_force_limit=1e4, refractory=0,
+                     lam=10.0)
     pick = lambda d: {k: v for k, v in d.items() if rng.random() < 0.5}
     detector = DetectorSettings(**pick(det_edges)) if rng.random() < 0.5 else None    # Algorithm 1 or the model
     return RMESettings(**pick(edges), vi=vi.VISettings(**pick(vi_edges)), changes=ChangeSettings(**pick(change_edges)),
