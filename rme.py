@@ -168,13 +168,13 @@ class RME:
         ref = lambda b: bool(b is not None if referred is None else referred)
         if not isinstance(q, (list, tuple)):
             q, tau, level = self._window(q, tau_ext, baseline, dq, ref(baseline))
-            return self._estimate(q, tau, referred=ref(baseline), level=level)[0]
+            return self._estimate(q, tau, referred=ref(baseline), level=level)
         each = lambda v: [None] * len(q) if v is None else list(v) if isinstance(v, (list, tuple)) else []
         if not (q and len(each(tau_ext)) == len(q) == len(each(baseline)) == len(each(dq))):
             raise ValueError(f"q, tau_ext, baseline, dq: expected lists of {len(q)} windows (or None), found other")
         windows = [self._window(*w, ref(w[2])) for w in zip(q, each(tau_ext), each(baseline), each(dq))]
         return self._estimate([w[0] for w in windows], [w[1] for w in windows],
-                              referred=[ref(b) for b in each(baseline)], level=[w[2] for w in windows])[0]
+                              referred=[ref(b) for b in each(baseline)], level=[w[2] for w in windows])
 
     def _absolute_error(self, q):
         """The covariance (n, n) or stds (n,) [Nm] of an absolute window's constant error about the offset at the
@@ -223,8 +223,7 @@ class RME:
         return tau, batched
 
     def _estimate(self, q, tau, referred=True, level=None):
-        """Network prior and VI on checked, corrected windows (or lists): (Estimate, S) with S (n + 5, 4) what
-        judging it needs of the newest window (regressor Y, torques T): mean Y, sum Y^T Y, sum Y^T T (rows).
+        """Network prior and VI on checked, corrected windows (or lists): the Estimate.
         referred: the window is less the level before the change (else absolute; a list with lists of windows);
         level (n,) [Nm^2]: what that level's own window leaves in its mean (_window; a list; None: a level given as a
         mean), with which a calibrated ErrorModel.drift replaces ErrorModel.referred.
@@ -258,9 +257,7 @@ class RME:
         e = Estimate(post.mean, post.marginal_std, post.cov, post.prior_mean, post.observed,
                      time.perf_counter() - start, post.iterations, post.converged)
         e.prior_source = post.prior if np.all(referred) else "broad"
-        return e, np.vstack([
-            Ys[-1].mean(axis=0), np.einsum("tij,tik->jk", Ys[-1], Ys[-1]), (tau[-1] if many else tau).ravel() @
-            Ys[-1].reshape(-1, 4)])
+        return e
 
     # --- streaming -----------------------------------------------------------------------------
     def update(self, q, dq, tau_ext) -> np.ndarray:
@@ -296,7 +293,7 @@ class RME:
         self._still = self._still + 1 if np.abs(dq).max() < s.rest_speed else 0
         due, S = self._due, s.changes.short
         if due is not None and due.job is not None and due.job.done():
-            self._decided(*due.job.result(), due.level, due.kind, due.refine, due.asked, due.departure)
+            self._decided(due.job.result(), due.level, due.kind, due.refine, due.asked, due.departure)
         elif due is None and self.detector is not None:
             self._algorithm_1(q, r, J)
         elif due is None and self.model.reference is None:            # the first level: the robot's own bias
@@ -407,14 +404,14 @@ class RME:
         if self.correction is not None:
             Tw = Tw - self.correction.correction(Qw, self._dq[idx])
         if self.executor is None:
-            return self._decided(*self._estimate(Qw, Tw), level, kind, refine, departure=now)
+            return self._decided(self._estimate(Qw, Tw), level, kind, refine, departure=now)
         prepare = getattr(self.executor, "prepare", None)
         if prepare is not None:
             prepare(Qw, Tw)
         self._due = _Due(None, -1, kind, refine, level, self.executor.submit(self._estimate, Qw, Tw), asked=self._k,
                          departure=now)
 
-    def _decided(self, e, S, level, kind, refine, asked=None, departure=None):
+    def _decided(self, e, level, kind, refine, asked=None, departure=None):
         """An estimate of the window referred to `level`, asked at sample `asked` (None: now), is back: applied
         (after its own wall time, if settings.asynchronous, or from the next sample with an executor) if the arm can
         carry it."""

@@ -1,6 +1,6 @@
 """Where RME's streamed estimates (network prior + VI, Sec. 4) run beside the 1 kHz loop: a thread of this process
 (ThreadWorker) or a worker process that owns its own estimator, rebuilt from picklable parts (ProcessWorker). Both
-fit RME's executor protocol: submit(RME._estimate, q, tau) -> a future with done() / result() -> (Estimate, S)."""
+fit RME's executor protocol: submit(RME._estimate, q, tau) -> a future with done() / result() -> Estimate."""
 from __future__ import annotations
 
 import mmap
@@ -110,7 +110,7 @@ class _Job:
 
 class ProcessWorker:
     """A worker process (a fresh interpreter, scheduled below the loop) that owns RME(spec.build()) and runs its _estimate
-    on the windows each submit sends: the same (Estimate, S) as the loop's own estimator with the same spec and the
+    on the windows each submit sends: the same Estimate as the loop's own estimator with the same spec and the
     same sequence of windows. submit accepts only the bound method RME._estimate (its estimator is the worker's own).
     The constructor waits until the worker is ready (at most `start_timeout` s; ValueError if the spec cannot be
     built there, RuntimeError if it does not answer). shutdown() ends it (killed by its own pid if it hangs).
@@ -294,14 +294,14 @@ def _take(box, msg, at=1):
 
 
 def _result(msg, box):
-    """A worker's answer: b"Y" + _put's header for (the Estimate's numbers, S) in the box, else the pickled result."""
+    """A worker's answer: b"Y" + _put's header for the Estimate's numbers in the box, else the pickled result."""
     if msg[:1] != b"Y":
         return pickle.loads(msg)
-    (v, S), _ = _take(box, msg)
+    (v,), _ = _take(box, msg)
     e = Estimate(v[0:4], v[4:8], v[8:24].reshape(4, 4), v[24:28], v[28:32] > 0.5, float(v[32]), int(v[33]),
                  bool(v[34]))
     e.prior_source = "broad" if v[35] > 0.5 else "network"
-    return e, S
+    return e
 
 
 def _numbers(e) -> np.ndarray:
@@ -349,7 +349,7 @@ def _serve(fd: int, boxes_fd: int):
             out = est._estimate(*args)
         except Exception as err:                       # handed to result() in the loop's process
             out = RuntimeError(f"the estimate failed in the worker: {type(err).__name__}: {err}")
-        head = _put(boxes.results, (_numbers(out[0]), out[1])) if shared and isinstance(out, tuple) else None
+        head = _put(boxes.results, (_numbers(out),)) if shared and not isinstance(out, Exception) else None
         conn.send_bytes(b"Y" + head) if head is not None else conn.send(out)
 
 
