@@ -38,7 +38,6 @@ class Estimate:
     iterations: int
     converged: bool
     t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
-    explained: float = float("nan")  # share of the window's change the new estimate explains (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
     kind: str = "window"             # "detection" (the model found a new payload), "at rest" (the same change
                                      #   again once the arm is still), "back" (the level returned to what an
@@ -134,11 +133,6 @@ class RME:
         """Whether the stream has its reference level and no change under judgement, estimate due or owed."""
         return self.model.reference is not None and self._since is None and self._due is None and \
             self._refine is None
-
-    @property
-    def active(self) -> bool:
-        """Whether the residual's level has departed from the reference and is being judged."""
-        return self._since is not None
 
     def expect_change(self, seconds: float = 2.0):
         """The task expects a load change within `seconds` from now (it closes or opens the gripper): until then the
