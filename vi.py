@@ -43,7 +43,8 @@ class VISettings:
                                        #   friction), both calibrated with `python sim.py calibration`
     motion_gain: float = 0.3           # Nm s/rad, ours: constant error per unit of |dq| (friction, off-pose model
     motion_max: float = 1.3            #   error; 0.3 beats 1.0 on Table 1, calibration, limit cycle); Nm, at most
-    reference_samples: int = 30        # samples of the reference the window is referred to (RMESettings.reference)
+    reference_samples: int = 30        # samples of the level a window is referred to (the paper's tables' 30
+                                       #   before the change; the stream's own is 2 changes.short, 80: less noise)
     swing_frequencies: tuple = tuple(np.arange(1.0, 10.01, 0.1))   # Hz, where swing_share looks for a swing: a
                                        #   flexible load a hand carries, 1-10 Hz (the steel beam of docs/real_logs.md:
                                        #   1.8-4.3 Hz); below 1 Hz a 0.2 s window holds a drift, not a swing
