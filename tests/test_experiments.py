@@ -93,3 +93,50 @@ def test_default_demo_is_static_with_its_flags():
     args = cli.parser().parse_args(["static", "--seed", "4", "--preset", "ideal"])
     assert (args.demo, args.seed, args.preset, args.plot, args.view) == ("static", 4, "ideal", None, False)
     assert cli.DEMOS["static"][1] == "experiments.scenarios:static_hold"
+
+
+def test_the_bench_tables_hold_each_method_on_the_same_windows(monkeypatch, capsys):
+    """The paper's tables' bookkeeping on windows whose answer is known: noise-free torques of four payloads along a
+    motion that observes every parameter, at rest and at the detection alike. Plain least squares (the baseline) is
+    what it gives on those windows directly, near the truth, RME near it too; Table 5 and the latencies are what the
+    trials returned, and the printed tables name every row."""
+    from experiments import bench
+    from experiments.baselines import LeastSquares
+    from nn_train import DataConfig, random_pose
+    robot, rng, cfg = Plant().robot, np.random.default_rng(21), DataConfig()
+    lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
+
+    def window(theta, q0):
+        s = np.linspace(0.0, 2 * np.pi, 300)               # the wrist turned 1.2 rad three ways: every parameter seen
+        q = q0 + 1.2 * np.stack([0 * s] * 4 + [np.sin(s), np.cos(s) - 1.0, np.sin(2 * s)], axis=1)
+        return q, robot.payload_torque(q, theta)
+
+    data = []
+    for _ in range(4):
+        theta = rng.uniform(lo, hi)
+        (q, tau), (q_rest, tau_rest) = (window(theta, random_pose(robot, rng, cfg)) for _ in range(2))
+        data.append(dict(theta=theta, q=q, tau=tau, q_rest=q_rest, tau_rest=tau_rest, detected=True, at_rest=True,
+                         delay=50.0))
+    monkeypatch.setattr(bench, "datasets", lambda *a, **k: data)
+    trial = {"calls": 0}
+
+    def closed_loop_trial(theta, seed, calibration=None):
+        trial["calls"] += 1
+        e = bench.RME(rng=np.random.default_rng(seed)).estimate(*window(theta, Q_READY), referred=True)
+        return e, e, 100.0 + trial["calls"]
+
+    monkeypatch.setattr(bench, "closed_loop_trial", closed_loop_trial)
+    res = bench.tables(n_datasets=4, trials=2, log=lambda *a: None)
+    ls = [LeastSquares(robot).estimate(d["q_rest"][-200:], d["tau_rest"][-200:], referred=True).mean - d["theta"]
+          for d in data]                                                       # the same windows, directly
+    np.testing.assert_allclose(res["table1_baselines"]["least squares"], np.mean(np.square(ls), axis=0), rtol=1e-12)
+    assert max(res["table1_baselines"]["least squares"]) < 1e-5                # (its ridge's bias alone: 3 mm rms)
+    assert res["table1"]["nn"][0] < 1e-4 and max(res["table1"]["nn"][1:]) < 1e-4     # (10 g, 1 cm rms)
+    assert set(res["table4"]) == set(res["table4_first"]) == {"50", "100", "200", "300"}
+    assert trial["calls"] == 2 * len(bench.TABLE5) and res["table1_detected"] == res["table1_at_rest"] == 4
+    assert res["attach_to_compensation_ms_median"] == np.median(100.0 + np.arange(1, 2 * len(bench.TABLE5) + 1))
+    for row, applied in zip(res["table5"], bench.TABLE5):
+        assert row["detected"] == row["trials"] == 2 and np.allclose(row["mean"], applied, atol=0.02)
+    bench.print_tables(res)
+    out = capsys.readouterr().out
+    assert all(f"Table 4 {k:>3} ms" in out for k in res["table4"]) and "least squares" in out and "at rest:" in out
