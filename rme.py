@@ -64,6 +64,19 @@ class _Due:
     departure: np.ndarray | None = None  # the level's departure (n,) from the reference then
 
 
+@dataclass
+class _Departure:
+    """The residual's level away from the reference, as judged so far (a fresh one when it returns)."""
+    since: int | None = None              # the sample the level first departed from the reference
+    level: np.ndarray | None = None       #   and settled at this departure d (n,)
+    wrench: bool = False                  # judged a wrench (counted once in RME.changes_not_payload)
+    held: np.ndarray | None = None        # the settled level (n,) of a wrench still acting, if any
+    best: str | None = None               # the most probable hypothesis
+    best_since: int = 0                   #   and since which sample
+    refused: np.ndarray | None = None     # a departure d (n,) not to estimate again (its estimate refused, or made
+    #                                       and applied) until it moves
+
+
 class RME:
     """The estimator. estimate(q, tau_ext) for a window; update(q, dq, tau_ext) once per 1 ms sample for streaming
     use, returning the compensation torque (7,) to add to the controller's torque. Streaming decisions come from one
@@ -105,13 +118,7 @@ class RME:
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
         self.changes_not_payload = 0                   # departures the model judged an external wrench
         self._due: _Due | None = None                  # an estimate decided on, running or waiting for its time
-        self._since = None                             # the sample the level first departed from the reference
-        self._level = None                             #   and settled at this departure d (n,)
-        self._wrench = False                           # that departure has been judged a wrench (counted once)
-        self._held = None                              # the settled level (n,) of a wrench still acting, if any
-        self._best, self._best_since = None, 0         # the most probable hypothesis, and since which sample
-        self._refused = None                           # a departure d (n,) not to estimate again (its estimate
-                                                       #   was refused, or made and applied) until it moves
+        self._dep = _Departure()                       # the departure from the reference under judgement
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
         self._held_since = 0                           # the sample the compensation took its present value
@@ -131,7 +138,7 @@ class RME:
     @property
     def settled(self) -> bool:
         """Whether the stream has its reference level and no change under judgement, estimate due or owed."""
-        return self.model.reference is not None and self._since is None and self._due is None and \
+        return self.model.reference is not None and self._dep.since is None and self._due is None and \
             self._refine is None
 
     def expect_change(self, seconds: float = 2.0):
@@ -233,7 +240,8 @@ class RME:
             priors.append(self.net.predict_window(self.robot, qi, ti, (R, J)) if network else np.zeros(4))
         prior = np.mean(priors, axis=0)
         prior = prior if np.all(np.isfinite(prior)) else np.zeros(4)   # the network overflowed on absurd torques
-        speed = [vi.joint_speed(qi, 1 / self.settings.rate) for qi in q] if many else vi.joint_speed(q, 1 / self.settings.rate)
+        dt = 1 / self.settings.rate
+        speed = [vi.joint_speed(qi, dt) for qi in q] if many else vi.joint_speed(q, dt)
         em, s = self.error_model, self.settings
         absolute = self._absolute_error                                                   # at the window's pose
         relative = lambda lv: em.referred if lv is None or em.drift is None else np.sqrt(np.square(em.drift) + lv)
@@ -314,24 +322,24 @@ class RME:
                 return self._owed()
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
-            self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
+            self._dep = _Departure()
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
-        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._held)
+        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._dep.held)
         self.verdicts.append((k / s.rate, v))
-        if self._since is None or moving or not m.same(v.d, self._level, q, Y):
-            self._since, self._level = k, v.d          # the level's age: since it settled where it is now
-        elif v.best == "wrench" and k - self._since >= S and self._still >= S:
-            self._held = v.d                           # a wrench holding the arm still: a return may come under it
-        if owed and (v.best == "noise" or v.best == "payload" and k - self._since >= s.window):
+        if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
+            self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
+        elif v.best == "wrench" and k - self._dep.since >= S and self._still >= S:
+            self._dep.held = v.d                       # a wrench holding the arm still: a return may come under it
+        if owed and (v.best == "noise" or v.best == "payload" and k - self._dep.since >= s.window):
             return self._owed()              # (not under a wrench; a payload's level steady over the whole window:
             #                                  the estimate covers what is on the flange now, no change inside it)
-        if v.best != self._best:
-            self._best, self._best_since = v.best, k
-        young = max(k - self._since, k - self._best_since) < s.changes.patience * s.rate   # (a level younger than
-        #   that may still change; a level drifting with friction on an arm that keeps moving is never steady, yet
-        #   a hypothesis the most probable for that long has had the evidence waiting would add)
+        if v.best != self._dep.best:
+            self._dep.best, self._dep.best_since = v.best, k
+        young = max(k - self._dep.since, k - self._dep.best_since) < s.changes.patience * s.rate   # (a level
+        #   younger than that may still change; a level drifting with friction on an arm that keeps moving is never
+        #   steady, yet a hypothesis the most probable for that long has had the evidence waiting would add)
         if v.sure < (s.changes.confidence if young else 0.5) or (moving and not (v.best == "payload" or (
                 v.best == "back" and m.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under),
                                                 q, Y)))):
@@ -342,7 +350,7 @@ class RME:
             if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
                 return                       # its mass not yet known to half the compensation's tolerance
                                              # (10 % or 50 g): the level still moves with the arm
-            if self._refused is not None and m.same(v.d, self._refused, q, Y):
+            if self._dep.refused is not None and m.same(v.d, self._dep.refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
             W = s.detection_window
             if v.under is None:
@@ -359,9 +367,9 @@ class RME:
             self._due = _Due(e, k, "back", phi_cov=v.cov)
         elif v.best == "noise" and self._still >= 2 * S and self._refine is None:
             m.set_reference(q, self._gradient(q))      # the bias moved with the pose: its new level
-            self._since = None                                         # (still: no friction in it)
-        elif not self._wrench:
-            self.changes_not_payload, self._wrench = self.changes_not_payload + 1, True
+            self._dep.since = None                                     # (still: no friction in it)
+        elif not self._dep.wrench:
+            self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
 
     def _owed(self):
         """The estimate on the full window at rest a change first estimated on the short one (or in motion) is owed,
@@ -417,7 +425,7 @@ class RME:
         if not e.accepted:
             e.reason = (f"its mass {e.mean[0]:.2f} kg or CoM {np.round(e.mean[1:], 3).tolist()} m is beyond what the "
                         f"arm carries (max_mass {s.max_mass} kg, max_com {s.max_com} m)")
-            self._refused = self.model.mean(s.changes.short) - self.model.reference.level \
+            self._dep.refused = self.model.mean(s.changes.short) - self.model.reference.level \
                 if self.model.reference is not None else None
             return
         delay = (math.ceil(e.seconds * s.rate) if s.asynchronous else 0) if self.executor is None else 1
@@ -449,11 +457,11 @@ class RME:
         if self.detector is not None:
             self.detector.shift(d, self._P @ d)
         due.estimate.applied = self._k / self.settings.rate
-        self._since, self._wrench, self._refused, self._held, self._best = None, False, None, None, None
+        self._dep = _Departure()
         self._refine = due.level if due.refine else None
         self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
         if due.kind != "back" and due.departure is not None:
-            self._refused = due.departure - d            # (the level it was made of, under the new compensation)
+            self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 
 
 def _phi_cov(theta, cov):
