@@ -100,7 +100,7 @@ class RME:
         keep = max(s.window, 2 * s.changes.short, 0 if s.detector is None else s.detector.window)
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
         self._k = 0                                    # samples seen
-        self.model = ChangeModel(s.changes, n, keep)   # the residual's level, its reference, the posterior
+        self.model = ChangeModel(s.changes, n, keep, self.error_model.absolute)   # the residual's level, its reference, the posterior
         self.payloads = Payloads.plausible(s.max_mass, s.max_com)   # what a new payload may be; the earlier ones
         self._fq, self._P = np.full(n, np.inf), None   # Algorithm 1's pseudo-force map P (3, n) and its pose
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
