@@ -82,6 +82,8 @@ class Verdict:
     cov: np.ndarray | None = None  # for "back": the covariance (4, 4) of the earlier phi
     under: np.ndarray | None = None   # back, payload: the held wrench's level (n,) it is a step from (None: from
     #                                   the reference)
+    kept: np.ndarray | None = None    # noise: the posterior mean (4,) of the payload compensated (nothing
+    kept_cov: np.ndarray | None = None  #   changed: the same payload, its estimate N(phi, cov) updated by d) and cov
 
     @property
     def sure(self) -> float:
@@ -255,7 +257,11 @@ class ChangeModel:
         s = self.s
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
-        logs = {"noise": gaussian_log_pdf(d, V)}
+        fV = cholesky(V)
+        logs = {"noise": gaussian_log_pdf(d, V, fV)}
+        K = self.compensated @ Y.T                                 # nothing changed: the compensated payload,
+        kept = phi + K @ cho_solve(fV, d, check_finite=False)     #   phi ~ N(phi_hat, cov), seen through d
+        kept_cov = self.compensated - K @ cho_solve(fV, K.T, check_finite=False)
         held = None if held is None else np.asarray(held, dtype=float)
         steps = [(d, 0.0, None)] if held is None else [(d, COMPOUND, None), (d - held, 0.0, held)]
         log, new, cov, odds, under = max((self._payload(x, Y, V, phi, payloads) + (o, u) for x, o, u in steps),
@@ -291,7 +297,7 @@ class ChangeModel:
         returned = best.startswith("back")
         return Verdict(d, post, best, earlier[1] if returned else new if best == "payload" else None,
                        math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if returned else None,
-                       earlier[3] if returned else under if best == "payload" else None)
+                       earlier[3] if returned else under if best == "payload" else None, kept, kept_cov)
 
     def _payload(self, e, Y, V, phi, payloads: Payloads) -> tuple:
         """(log evidence, posterior mean (4,), covariance (4, 4)) of a new payload phi_new ~ payloads, inside its

@@ -143,6 +143,31 @@ def test_a_sensor_offset_moved_by_a_large_pose_change_is_noise(with_bias, load):
     assert (right >= 18) if with_bias else (right <= 2), best
 
 
+def test_the_noise_hypothesis_corrects_the_compensated_payload_by_its_own_uncertainty():
+    """Nothing changed, but the payload compensated, phi_hat = (1.5 kg, m r) with covariance P, is off by a draw from
+    N(0, P): the level is Y (phi - phi_hat) plus the sensor's noise (per sample, what gives a short mean the model's
+    rest_noise). The noise hypothesis' posterior of the payload (v.kept, v.kept_cov) must never be overconfident
+    against the truth: over 200 fresh draws the mass's squared z-score averages below 1.4 (the model is cautious:
+    its reference as noisy as a short mean, the level's last move as noise again: about 0.2), and its error is
+    under half phi_hat's."""
+    rng = np.random.default_rng(9)
+    P = np.diag([0.08, 0.02, 0.02, 0.02]) ** 2
+    z2, before, after = [], [], []
+    for _ in range(200):
+        J, R, Y = arm(rng)
+        m, bias = fresh(rng)
+        phi_hat = np.r_[1.5, 1.5 * rng.uniform(-0.1, 0.1, 3)]
+        m.compensated = P
+        phi = rng.multivariate_normal(phi_hat, P)
+        stream(m, rng, [bias + Y @ (phi - phi_hat)] * 120, noise=np.array(m.s.rest_noise) * np.sqrt(m.s.short))
+        v = m.judge(Y, J, phi_hat, np.zeros(N), Payloads.plausible(3.0, 0.3))
+        z2.append((v.kept[0] - phi[0]) ** 2 / v.kept_cov[0, 0])
+        before.append(abs(phi_hat[0] - phi[0]))
+        after.append(abs(v.kept[0] - phi[0]))
+    assert np.mean(z2) < 1.4, np.mean(z2)
+    assert np.mean(after) < 0.5 * np.mean(before), (np.mean(after), np.mean(before))
+
+
 def test_each_evidence_matches_a_direct_gaussian():
     """The noise, wrench and back evidences against scipy's multivariate normal; the payload's (no box) against
     the Gaussian marginal of d = Y (phi_new - phi) + e."""
