@@ -119,7 +119,10 @@ class RME:
                                                        #   was refused, or made and applied) until it moves
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
-        self._held_since = 0                           # the sample the compensation took its present value
+        self._quiet = None                             # the sample the level last came to sit at the compensation's
+                                                       #   own (None: it does not now)
+        self._settled = False                          # it has sat there for `patience` since the compensation took
+                                                       #   its present value: a state to return to
         self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
         self.paused = False                            # True: departures are not judged (a caller moving the arm
@@ -322,7 +325,11 @@ class RME:
         owed = (self._refine is not None and self._still >= s.window   # the change on the full window, at rest
                 and k - self._refine_from >= s.window)
         moving = m.settling() > s.changes.detect
-        if m.departure(q, Y) <= s.changes.detect:
+        departed = m.departure(q, Y) > s.changes.detect
+        quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
+        self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
+        self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
+        if not departed:
             if owed:                         # (what the compensation leaves is its own error: no other change)
                 return self._owed()
             if moving:
@@ -468,10 +475,9 @@ class RME:
         phi = phi_of(theta)
         if due.kind == "back":               # the change undone: not a state to return to (a press let go)
             self.payloads.forget(phi)
-        elif due.kind not in ("at rest", "correction") and \
-                self._k - self._held_since >= self.settings.changes.patience * s.rate:
-            self.payloads.remember(self._phi, self.model.compensated)   # a state the arm held (not an estimate
-        self._held_since = self._k                                      #   of a change the next one corrected)
+        elif due.kind not in ("at rest", "correction") and self._settled:
+            self.payloads.remember(self._phi, self.model.compensated)   # a state whose level settled (not an
+        self._settled, self._quiet = False, None                        #   estimate in motion the next corrected)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         self.theta, self._phi = theta, phi
