@@ -1,5 +1,6 @@
 """changes.ChangeModel on synthetic residuals with a known cause (no MuJoCo): a payload step, a push and its release,
-a press through the flange, a bias drift with the pose; each hypothesis' evidence against a direct evaluation."""
+a press through the flange, a bias drift with the pose, a sensor offset moved by a large pose change, a compensation
+off by its own error; each hypothesis' evidence against a direct evaluation."""
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
