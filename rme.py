@@ -393,8 +393,10 @@ class RME:
         theta = safe_theta(np.nan_to_num(theta_of(v.kept)), self.theta, s.max_mass)
         D = np.linalg.inv(_phi_jacobian(theta)) if theta[0] > 1e-3 else np.zeros((4, 4))   # theta's covariance
         cov = D @ v.kept_cov @ D.T                                                          #   from phi's
-        e = Estimate(theta, np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, np.zeros(4), np.zeros(4, dtype=bool), 0.0,
-                     0, True, t=self._k / s.rate, kind="correction", prior_source="")
+        held = next((h for h in reversed(self.history) if h.accepted and math.isfinite(h.applied)), None)
+        observed = np.zeros(4, dtype=bool) if held is None else held.observed.copy()   # (the payload it corrects)
+        e = Estimate(theta, np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, np.zeros(4), observed, 0.0, 0, True,
+                     t=self._k / s.rate, kind="correction", prior_source="")
         e.reason = "nothing changed, and the level says the compensated payload's estimate was off"
         self.history.append(e)
         self._due = _Due(e, self._k, "correction", phi_cov=v.kept_cov, departure=v.d)
