@@ -32,6 +32,9 @@ class ChangeSettings:
                                     #   p1 p2 / 4; measured on the realistic plant in motion: 0.5-1.6)
     model_error: float = 0.1        # share of the links' gravity torque the robot model misses (link masses within
                                     #   8 %, CoMs within 2 cm on the realistic preset): the level moves with the pose
+    bias_length: float = 2.0        # rad: the distance in joint space over which the torque sensors' pose-dependent
+                                    #   offset (its size: the error model's `absolute`) decorrelates (load-free rest
+                                    #   levels at 250 poses of each simulated plant, docs/streaming.md)
     push_force: float = 30.0        # N: std of each component of a person's push (pushes of 5-60 N)
     push_arm: float = 0.1           # m: lever of a push about the flange (a hand on the gripper or the tool)
     detect: float = 24.3            # chi^2 of the level's departure from the reference that opens a judgement
@@ -48,6 +51,7 @@ class ChangeSettings:
         for name in ("rest_noise", "friction", "friction_slope"):
             c.array(f"changes.{name}", getattr(self, name), (len(getattr(self, name)),), "(0, 100]", "Nm")
         c.number("changes.model_error", self.model_error, "[0, 1]", "(a share)")
+        c.number("changes.bias_length", self.bias_length, "(0, 100]", "rad")
         c.number("changes.push_force", self.push_force, "(0, 1e4]", "N")
         c.number("changes.push_arm", self.push_arm, "(0, 10]", "m")
         c.number("changes.detect", self.detect, "(0, 1e6]", "(chi^2)")
@@ -78,6 +82,8 @@ class Verdict:
     cov: np.ndarray | None = None  # for "back": the covariance (4, 4) of the earlier phi
     under: np.ndarray | None = None   # back, payload: the held wrench's level (n,) it is a step from (None: from
     #                                   the reference)
+    kept: np.ndarray | None = None    # noise: the posterior mean (4,) of the payload compensated (nothing
+    kept_cov: np.ndarray | None = None  #   changed: the same payload, its estimate N(phi, cov) updated by d) and cov
 
     @property
     def sure(self) -> float:
@@ -131,10 +137,13 @@ def gaussian_log_pdf(x, C, f=None) -> float:
 
 class ChangeModel:
     """The level of the residual r (n,) over the last `short` samples against the reference, its noise, and the
-    posterior over what moved it. push(r, dq) each sample; judge(...) when departure() > settings.detect."""
+    posterior over what moved it. push(r, dq) each sample; judge(...) when departure() > settings.detect.
+    pose_bias (n,) [Nm]: the std over the workspace of the torque sensors' pose-dependent offset (the robot's error
+    model's `absolute`; None: none)."""
 
-    def __init__(self, settings: ChangeSettings, n: int, keep: int = 500):
+    def __init__(self, settings: ChangeSettings, n: int, keep: int = 500, pose_bias=None):
         self.s, self.n = settings, n
+        self.pose_bias = np.zeros(n) if pose_bias is None else np.asarray(pose_bias, dtype=float)[:n]
         self._r, self._v, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, |dq|; samples
         self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
         self.reference: Reference | None = None
@@ -182,8 +191,10 @@ class ChangeModel:
     def covariance(self, q, Y=None, moving=True, friction=True) -> np.ndarray:
         """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
         noise and the reference's, friction in motion now and then, the level still moving, the robot model's error
-        carried along the pose change since the reference (model_error of the gravity torque's change), and with
-        the payload regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T."""
+        carried along the pose change since the reference (model_error of the gravity torque's change), the
+        sensors' pose-dependent offset carried along it (a Gaussian process of std pose_bias and length bias_length
+        in joint space: 2 pose_bias^2 (1 - exp(-|q - q_ref|^2 / (2 bias_length^2))) per joint), and with the payload
+        regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T."""
         own, g = self._parts(q, moving, friction)
         C = np.outer(g, g)
         C.flat[::self.n + 1] += own
@@ -200,8 +211,11 @@ class ChangeModel:
         s, ref, S = self.s, self.reference, self.s.short
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
-        g = s.model_error * ref.gradient @ (np.asarray(q) - ref.q)
-        return 2 * self.noise + fric + moving * moving, g
+        dq = np.asarray(q) - ref.q
+        g = s.model_error * ref.gradient @ dq
+        bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (dq @ dq) / s.bias_length ** 2))   # the offset's
+        #                                                                     change since the reference, per joint
+        return 2 * self.noise + fric + moving * moving + bias, g
 
     def settling(self) -> float:
         """chi^2 of the level's move over the last `short` samples under the noise alone (of two short means, with
@@ -243,7 +257,11 @@ class ChangeModel:
         s = self.s
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
-        logs = {"noise": gaussian_log_pdf(d, V)}
+        fV = cholesky(V)
+        logs = {"noise": gaussian_log_pdf(d, V, fV)}
+        K = self.compensated @ Y.T                                 # nothing changed: the compensated payload,
+        kept = phi + K @ cho_solve(fV, d, check_finite=False)     #   phi ~ N(phi_hat, cov), seen through d
+        kept_cov = self.compensated - K @ cho_solve(fV, K.T, check_finite=False)
         held = None if held is None else np.asarray(held, dtype=float)
         steps = [(d, 0.0, None)] if held is None else [(d, COMPOUND, None), (d - held, 0.0, held)]
         log, new, cov, odds, under = max((self._payload(x, Y, V, phi, payloads) + (o, u) for x, o, u in steps),
@@ -279,7 +297,7 @@ class ChangeModel:
         returned = best.startswith("back")
         return Verdict(d, post, best, earlier[1] if returned else new if best == "payload" else None,
                        math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if returned else None,
-                       earlier[3] if returned else under if best == "payload" else None)
+                       earlier[3] if returned else under if best == "payload" else None, kept, kept_cov)
 
     def _payload(self, e, Y, V, phi, payloads: Payloads) -> tuple:
         """(log evidence, posterior mean (4,), covariance (4, 4)) of a new payload phi_new ~ payloads, inside its

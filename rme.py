@@ -41,7 +41,9 @@ class Estimate:
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
     kind: str = "window"             # "detection" (the model found a new payload), "at rest" (the same change
                                      #   again once the arm is still), "back" (the level returned to what an
-                                     #   earlier payload leaves: that payload again, no window estimated) or "window"
+                                     #   earlier payload leaves: that payload again, no window estimated),
+                                     #   "correction" (nothing changed, and the level corrects the payload held:
+                                     #   the noise hypothesis' posterior, no window estimated) or "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied, or applied only later (update only)
     prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
@@ -84,7 +86,8 @@ class RME:
     loop, applied once update finds it done (settings.asynchronous moot); None: within update.
     calibration: the robot's error model (error_model.ErrorModel, or the JSON of `python rme.py calibrate LOG --save`;
     None: an uncalibrated Panda), which says how far tau_ext may stray from the payload's torque in a window taken
-    as it is (absolute) and in one referred to the level before a change.
+    as it is (absolute) and in one referred to the level before a change, and how far the sensors' pose-dependent
+    offset may move the streamed level as the pose changes (its absolute).
     tool (ours): a known tool on the flange (motion.tool_forms: a Tool, a dict with mass, com, inertia in the flange
     frame F, or a tool.json path) that Desk does not have: its weight's torque Y(q) phi_tool is subtracted from
     tau_ext as each sample arrives (so RME estimates only what is added to it; a window referred to a level taken with
@@ -112,7 +115,8 @@ class RME:
         keep = max(s.window, 2 * s.changes.short, 0 if s.detector is None else s.detector.window)
         self._q, self._dq, self._tau = np.zeros((keep, n)), np.zeros((keep, n)), np.zeros((keep, n))   # ring buffers
         self._k = 0                                    # samples seen
-        self.model = ChangeModel(s.changes, n, keep)   # the residual's level, its reference, the posterior
+        self.model = ChangeModel(s.changes, n, keep, self.error_model.absolute)   # the residual's level, its
+        #                                              reference, the posterior; the sensors' pose offset's size
         self.payloads = Payloads.plausible(s.max_mass, s.max_com)   # what a new payload may be; the earlier ones
         self._fq, self._P = np.full(n, np.inf), None   # Algorithm 1's pseudo-force map P (3, n) and its pose
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
@@ -121,7 +125,10 @@ class RME:
         self._dep = _Departure()                       # the departure from the reference under judgement
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
-        self._held_since = 0                           # the sample the compensation took its present value
+        self._quiet = None                             # the sample the level last came to sit at the compensation's
+                                                       #   own (None: it does not now)
+        self._settled = False                          # it has sat there for `patience` since the compensation took
+                                                       #   its present value: a state to return to
         self._still = 0                                # samples every joint has been slower than rest_speed
         self._expected = 0                             # before this sample a change is expected (expect_change)
         self.paused = False                            # True: departures are not judged (a caller moving the arm
@@ -317,7 +324,11 @@ class RME:
         owed = (self._refine is not None and self._still >= s.window   # the change on the full window, at rest
                 and k - self._refine_from >= s.window)
         moving = m.settling() > s.changes.detect
-        if m.departure(q, Y) <= s.changes.detect:
+        departed = m.departure(q, Y) > s.changes.detect
+        quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
+        self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
+        self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
+        if not departed:
             if owed:                         # (what the compensation leaves is its own error: no other change)
                 return self._owed()
             if moving:
@@ -365,11 +376,29 @@ class RME:
             e.reason = "the level returned to what this earlier payload leaves"
             self.history.append(e)
             self._due = _Due(e, k, "back", phi_cov=v.cov)
+        elif v.best == "noise" and abs(v.kept[0] - self._phi[0]) > max(0.05 * v.kept[0], 0.025):
+            self._correct(v)                 # nothing changed, yet the data move the compensated mass by more than
+            #                                  half the tolerance: the estimate was off (a window in motion)
         elif v.best == "noise" and self._still >= 2 * S and self._refine is None:
             m.set_reference(q, self._gradient(q))      # the bias moved with the pose: its new level
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
+
+    def _correct(self, v):
+        """Compensate the payload held as the noise hypothesis' posterior says (v.kept, v.kept_cov): the same payload,
+        its estimate corrected by the level's departure; the estimate at rest stays owed."""
+        s = self.settings
+        theta = safe_theta(np.nan_to_num(theta_of(v.kept)), self.theta, s.max_mass)
+        D = np.linalg.inv(_phi_jacobian(theta)) if theta[0] > 1e-3 else np.zeros((4, 4))   # theta's covariance
+        cov = D @ v.kept_cov @ D.T                                                          #   from phi's
+        held = next((h for h in reversed(self.history) if h.accepted and math.isfinite(h.applied)), None)
+        observed = np.zeros(4, dtype=bool) if held is None else held.observed.copy()   # (the payload it corrects)
+        e = Estimate(theta, np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, np.zeros(4), observed, 0.0, 0, True,
+                     t=self._k / s.rate, kind="correction", prior_source="")
+        e.reason = "nothing changed, and the level says the compensated payload's estimate was off"
+        self.history.append(e)
+        self._due = _Due(e, self._k, "correction", phi_cov=v.kept_cov, departure=v.d)
 
     def _owed(self):
         """The estimate on the full window at rest a change first estimated on the short one (or in motion) is owed,
@@ -447,9 +476,9 @@ class RME:
         phi = phi_of(theta)
         if due.kind == "back":               # the change undone: not a state to return to (a press let go)
             self.payloads.forget(phi)
-        elif due.kind != "at rest" and self._k - self._held_since >= self.settings.changes.patience * s.rate:
-            self.payloads.remember(self._phi, self.model.compensated)   # a state the arm held (not an estimate
-        self._held_since = self._k                                      #   of a change the next one corrected)
+        elif due.kind not in ("at rest", "correction") and self._settled:
+            self.payloads.remember(self._phi, self.model.compensated)   # a state whose level settled (not an
+        self._settled, self._quiet = False, None                        #   estimate in motion the next corrected)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         self.theta, self._phi = theta, phi
@@ -458,17 +487,24 @@ class RME:
             self.detector.shift(d, self._P @ d)
         due.estimate.applied = self._k / self.settings.rate
         self._dep = _Departure()
-        self._refine = due.level if due.refine else None
-        self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
+        if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
+            self._refine = due.level if due.refine else None
+            self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
         if due.kind != "back" and due.departure is not None:
             self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 
 
-def _phi_cov(theta, cov):
-    """Covariance (4, 4) of phi = (m, m r) from theta's (4, 4) at theta (first order)."""
+def _phi_jacobian(theta):
+    """d phi / d theta (4, 4) at theta: phi = (m, m r)."""
     m, r = theta[0], theta[1:]
     D = np.zeros((4, 4))
     D[0, 0], D[1:, 0], D[1:, 1:] = 1.0, r, m * np.eye(3)
+    return D
+
+
+def _phi_cov(theta, cov):
+    """Covariance (4, 4) of phi = (m, m r) from theta's (4, 4) at theta (first order)."""
+    D = _phi_jacobian(theta)
     return D @ np.asarray(cov) @ D.T
 
 

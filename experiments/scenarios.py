@@ -69,7 +69,8 @@ def print_estimates(log, label="RME"):
         if e.accepted and e.reason:
             when += f" ({e.reason})"
         what = {"detection": "finds a new payload", "at rest": "estimates again, arm at rest",
-                "back": "returns to an earlier payload"}.get(e.kind, "estimates")
+                "back": "returns to an earlier payload", "correction": "corrects the payload held"}
+        what = what.get(e.kind, "estimates")
         blind = " (rz: prior, not observed at this pose)" if e.kind != "back" and not e.observed[3] else ""
         print(f"  {e.t:6.3f} s  {label} {what} [{e.kind}]; estimate m = {e.mean[0]:.3f} +- {2 * e.std[0]:.3f} kg, "
               f"r = ({', '.join(f'{v:+.3f}' for v in e.mean[1:])}) m{blind}"
