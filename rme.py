@@ -399,8 +399,8 @@ class RME:
         _corrected): the same payload, its estimate corrected by the level's departure; the estimate at rest stays
         owed."""
         s = self.settings
-        D = np.linalg.inv(_phi_jacobian(theta)) if theta[0] > 1e-3 else np.zeros((4, 4))   # theta's covariance
-        cov = D @ v.kept_cov @ D.T                                                          #   from phi's
+        D = np.linalg.inv(_phi_jacobian(theta)) if theta[0] > 1e-3 else np.diag([1.0, 0, 0, 0])   # theta's cov
+        cov = D @ v.kept_cov @ D.T                         #   from phi's (no mass: its own variance, no CoM to have)
         held = next((h for h in reversed(self.history) if h.accepted and math.isfinite(h.applied)), None)
         observed = np.zeros(4, dtype=bool) if held is None else held.observed.copy()   # (the payload it corrects)
         e = Estimate(theta, np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, np.zeros(4), observed, 0.0, 0, True,

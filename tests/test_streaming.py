@@ -278,3 +278,26 @@ def test_a_correction_is_made_only_when_the_payload_it_compensates_moves_the_mas
     est.theta = np.array([top, 0.0, 0.0, 0.0])
     assert est._corrected(verdict([top + 1.0, 0.0, 0.0, 0.0])) is None      # beyond max_mass: clipped to the held
     assert est._corrected(verdict([0.5 * top, 0.0, 0.0, 0.0]))[0] == 0.5 * top
+
+
+def test_a_correction_carries_the_spread_of_theta_under_the_noise_hypothesis_posterior():
+    """A correction's Estimate (std (4,), cov (4, 4) of theta = (m, r)) against theta_of over 20000 draws of phi from
+    the posterior N(kept, kept_cov) it is made of: within 5 % (first order for a 2 % mass std); with no mass left,
+    the mass's own std, nothing claimed of a CoM."""
+    from changes import Verdict
+    from dynamics import theta_of
+    rng = np.random.default_rng(5)
+    est = RME(rng=np.random.default_rng(0))
+    A = rng.normal(size=(4, 4)) * np.array([0.02, 0.002, 0.002, 0.002])[:, None]
+    P = A @ A.T + np.diag([0.02, 0.002, 0.002, 0.002]) ** 2
+    for kept in (np.array([1.0, 0.05, -0.02, 0.08]), np.array([-0.1, 0.0, 0.0, 0.0])):
+        v = Verdict(np.zeros(7), {"noise": 1.0}, "noise", kept=kept, kept_cov=P)
+        est.theta, est._phi = np.array([0.5, 0.0, 0.0, 0.0]), np.array([0.5, 0.0, 0.0, 0.0])
+        est._correct(v, est._corrected(v))
+        e = est.history[-1]
+        assert e.kind == "correction" and np.all(np.isfinite(e.std)) and np.all(np.isfinite(e.cov))
+        if kept[0] > 0:
+            draws = theta_of(rng.multivariate_normal(kept, P, 20000))
+            np.testing.assert_allclose(e.std, draws.std(axis=0), rtol=0.05)
+        else:
+            np.testing.assert_allclose(e.std, [np.sqrt(P[0, 0]), 0.0, 0.0, 0.0])
