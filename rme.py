@@ -376,8 +376,8 @@ class RME:
             e.reason = "the level returned to what this earlier payload leaves"
             self.history.append(e)
             self._due = _Due(e, k, "back", phi_cov=v.cov)
-        elif v.best == "noise" and abs(v.kept[0] - self._phi[0]) > max(0.05 * v.kept[0], 0.025):
-            self._correct(v)                 # nothing changed, yet the data move the compensated mass by more than
+        elif v.best == "noise" and (theta := self._corrected(v)) is not None:
+            self._correct(v, theta)          # nothing changed, yet the data move the compensated mass by more than
             #                                  half the tolerance: the estimate was off (a window in motion)
         elif v.best == "noise" and self._still >= 2 * S and self._refine is None:
             m.set_reference(q, self._gradient(q))      # the bias moved with the pose: its new level
@@ -385,13 +385,22 @@ class RME:
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
 
-    def _correct(self, v):
-        """Compensate the payload held as the noise hypothesis' posterior says (v.kept, v.kept_cov): the same payload,
-        its estimate corrected by the level's departure; the estimate at rest stays owed."""
+    def _corrected(self, v):
+        """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
+        or None when its mass is within half the tolerance (10 % or 50 g) of the compensated one, or not finite (a
+        posterior outside what the arm carries, clipped, would leave the level where it is and be corrected again)."""
+        if not np.all(np.isfinite(v.kept)):
+            return None
+        theta = safe_theta(np.nan_to_num(theta_of(v.kept)), self.theta, self.settings.max_mass)
+        return theta if abs(theta[0] - self.theta[0]) > max(0.05 * theta[0], 0.025) else None
+
+    def _correct(self, v, theta):
+        """Compensate the payload held as the noise hypothesis' posterior says (v.kept, v.kept_cov; theta (4,) its
+        _corrected): the same payload, its estimate corrected by the level's departure; the estimate at rest stays
+        owed."""
         s = self.settings
-        theta = safe_theta(np.nan_to_num(theta_of(v.kept)), self.theta, s.max_mass)
-        D = np.linalg.inv(_phi_jacobian(theta)) if theta[0] > 1e-3 else np.zeros((4, 4))   # theta's covariance
-        cov = D @ v.kept_cov @ D.T                                                          #   from phi's
+        D = np.linalg.inv(_phi_jacobian(theta)) if theta[0] > 1e-3 else np.diag([1.0, 0, 0, 0])   # theta's cov
+        cov = D @ v.kept_cov @ D.T                         #   from phi's (no mass: its own variance, no CoM to have)
         held = next((h for h in reversed(self.history) if h.accepted and math.isfinite(h.applied)), None)
         observed = np.zeros(4, dtype=bool) if held is None else held.observed.copy()   # (the payload it corrects)
         e = Estimate(theta, np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, np.zeros(4), observed, 0.0, 0, True,

@@ -257,3 +257,47 @@ def test_the_estimate_at_rest_waits_for_a_push_holding_the_arm_still():
         assert not during, (m, side, during)
         assert within(rec.theta_hat[-1, 0], m), (m, [(round(e.t, 3), e.kind, e.mean.round(3).tolist())
                                                      for e in est.history])
+
+
+def test_a_correction_is_made_only_when_the_payload_it_compensates_moves_the_mass():
+    """The noise hypothesis' posterior of the payload held (Verdict.kept, phi (4,)) corrects the compensation only if
+    the payload compensated from it (finite, mass in [0, max_mass]) differs in mass from the held one by more than
+    half the tolerance (10 % or 50 g): a posterior the arm cannot carry, clipped back to the held mass, would leave
+    the level where it is and be judged again every 5 ms."""
+    from changes import Verdict
+    est = RME(rng=np.random.default_rng(0))
+    top = est.settings.max_mass
+
+    def verdict(phi):
+        return Verdict(np.zeros(7), {"noise": 1.0}, "noise", kept=np.asarray(phi, dtype=float))
+
+    assert est._corrected(verdict([-0.3, 0.0, 0.0, 0.0])) is None            # below 0 kg: clipped to the 0 held
+    assert est._corrected(verdict([np.nan, 0.0, 0.0, 0.0])) is None
+    assert est._corrected(verdict([0.02, 0.0, 0.0, 0.0])) is None            # within 50 g of the 0 held
+    np.testing.assert_allclose(est._corrected(verdict([0.3, 0.03, 0.0, -0.015])), [0.3, 0.1, 0.0, -0.05])
+    est.theta = np.array([top, 0.0, 0.0, 0.0])
+    assert est._corrected(verdict([top + 1.0, 0.0, 0.0, 0.0])) is None      # beyond max_mass: clipped to the held
+    assert est._corrected(verdict([0.5 * top, 0.0, 0.0, 0.0]))[0] == 0.5 * top
+
+
+def test_a_correction_carries_the_spread_of_theta_under_the_noise_hypothesis_posterior():
+    """A correction's Estimate (std (4,), cov (4, 4) of theta = (m, r)) against theta_of over 20000 draws of phi from
+    the posterior N(kept, kept_cov) it is made of: within 5 % (first order for a 2 % mass std); with no mass left,
+    the mass's own std, nothing claimed of a CoM."""
+    from changes import Verdict
+    from dynamics import theta_of
+    rng = np.random.default_rng(5)
+    est = RME(rng=np.random.default_rng(0))
+    A = rng.normal(size=(4, 4)) * np.array([0.02, 0.002, 0.002, 0.002])[:, None]
+    P = A @ A.T + np.diag([0.02, 0.002, 0.002, 0.002]) ** 2
+    for kept in (np.array([1.0, 0.05, -0.02, 0.08]), np.array([-0.1, 0.0, 0.0, 0.0])):
+        v = Verdict(np.zeros(7), {"noise": 1.0}, "noise", kept=kept, kept_cov=P)
+        est.theta, est._phi = np.array([0.5, 0.0, 0.0, 0.0]), np.array([0.5, 0.0, 0.0, 0.0])
+        est._correct(v, est._corrected(v))
+        e = est.history[-1]
+        assert e.kind == "correction" and np.all(np.isfinite(e.std)) and np.all(np.isfinite(e.cov))
+        if kept[0] > 0:
+            draws = theta_of(rng.multivariate_normal(kept, P, 20000))
+            np.testing.assert_allclose(e.std, draws.std(axis=0), rtol=0.05)
+        else:
+            np.testing.assert_allclose(e.std, [np.sqrt(P[0, 0]), 0.0, 0.0, 0.0])

@@ -124,9 +124,9 @@ def _windows(robot, rng, thetas):
 @pytest.mark.slow
 def test_process_worker_gives_the_in_process_estimate_bit_for_bit():
     """The worker rebuilds the estimator from the spec (MJCF, weights, settings, seed): the same sequence of windows
-    gives exactly the estimates (mean, covariance, prior, iterations) of the estimator the spec builds in this process, whether
-    a job travels through the shared memory (none out before it), pickled (queued behind another) or is a list of
-    windows (combined evidence, pickled)."""
+    gives exactly the estimates (mean, covariance, prior, iterations) of the estimator the spec builds in this
+    process, whether a job travels through the shared memory (none out before it), pickled (queued behind another) or
+    is a list of windows (combined evidence, pickled)."""
     from robot.worker import EstimatorSpec, ProcessWorker
     spec = EstimatorSpec(seed=11)
     windows = _windows(ROBOT, np.random.default_rng(5), [(1.0, 0.0, 0.0, 0.05), (0.5, 0.02, -0.01, 0.1),
@@ -199,6 +199,23 @@ def test_a_job_that_cannot_be_sent_fails_alone():
             bad.result()
         assert time.perf_counter() - t0 < 5.0 and abs(first.result().mean[0] - 1.0) < 0.1
         assert abs(worker.submit(there._estimate, q_a, tau_a).result().mean[0] - 1.0) < 0.1
+
+
+@pytest.mark.slow
+def test_an_estimate_that_fails_in_the_worker_raises_at_result_and_the_next_is_answered():
+    """A job sent through the shared memory (none out before it) whose estimate raises in the worker (tau_ext of 6
+    joints for a 7-joint arm) comes back pickled: its result() raises a RuntimeError naming the worker's error; the
+    next job through the shared memory is answered as the in-process estimator answers it."""
+    from robot.worker import EstimatorSpec, ProcessWorker
+    spec = EstimatorSpec(seed=4)
+    (q_a, tau_a), = _windows(ROBOT, np.random.default_rng(10), [(1.0, 0.0, 0.0, 0.05)])
+    ref = spec.build()._estimate(q_a, tau_a)
+    with ProcessWorker(spec) as worker:
+        there = spec.build(executor=worker)
+        with pytest.raises(RuntimeError, match="the estimate failed in the worker: ValueError"):
+            worker.submit(there._estimate, q_a, np.ascontiguousarray(tau_a[:, :6])).result()
+        e = worker.submit(there._estimate, q_a, tau_a).result()
+    assert np.array_equal(e.mean, ref.mean) and np.array_equal(e.cov, ref.cov)
 
 
 @pytest.mark.slow
