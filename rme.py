@@ -120,6 +120,7 @@ class RME:
         self.payloads = Payloads.plausible(s.max_mass, s.max_com)   # what a new payload may be; the earlier ones
         self._fq, self._P = np.full(n, np.inf), None   # Algorithm 1's pseudo-force map P (3, n) and its pose
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
+        self.failed, self.failure = 0, ""                # estimates that failed beside the loop; the last one's error
         self.changes_not_payload = 0                   # departures the model judged an external wrench
         self._due: _Due | None = None                  # an estimate decided on, running or waiting for its time
         self._dep = _Departure()                       # the departure from the reference under judgement
@@ -302,7 +303,7 @@ class RME:
         self._still = self._still + 1 if np.abs(dq).max() < s.rest_speed else 0
         due, S = self._due, s.changes.short
         if due is not None and due.job is not None and due.job.done():
-            self._decided(due.job.result(), due.level, due.kind, due.refine, due.asked, due.departure)
+            self._received(due)
         elif due is None and self.detector is not None:
             self._algorithm_1(q, r, J)
         elif due is None and self.model.reference is None:            # the first level: the robot's own bias
@@ -316,6 +317,16 @@ class RME:
         comp = -(Y @ self._phi) if tool is None else -(Y @ self._phi) - tool
         self._last = np.minimum(np.maximum(comp, -self._limit), self._limit)
         return self._last
+
+    def _received(self, due):
+        """An estimate run beside the loop is back: decided on; one that failed there (the executor's result raises)
+        is counted in `failed` with its message in `failure`, and the change is judged again (the loop goes on)."""
+        try:
+            e = due.job.result()
+        except Exception as err:                       # (any: the 1 kHz loop never stops for an estimate)
+            self.failed, self.failure, self._due = self.failed + 1, f"{type(err).__name__}: {err}", None
+            return
+        self._decided(e, due.level, due.kind, due.refine, due.asked, due.departure)
 
     def _step(self, q, Y, J):
         """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate at

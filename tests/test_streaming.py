@@ -88,6 +88,52 @@ def test_an_absurd_sample_is_dropped_and_detection_goes_on():
         Detector().update(np.full(7, 1e200), force=np.zeros(3))
 
 
+class _Done:
+    """A finished job: its value, or the error its result() raises."""
+
+    def __init__(self, value=None, error=None):
+        self.value, self.error = value, error
+
+    def done(self):
+        return True
+
+    def result(self):
+        if self.error is not None:
+            raise self.error
+        return self.value
+
+
+class _FailingFirst:
+    """An executor whose first `failures` jobs fail (as a worker's estimate that raised), the rest run at once."""
+
+    def __init__(self, failures):
+        self.failures, self.jobs = failures, 0
+
+    def submit(self, fn, *args):
+        self.jobs += 1
+        if self.jobs <= self.failures:
+            return _Done(error=RuntimeError("the estimate failed in the worker: ValueError: test"))
+        return _Done(fn(*args))
+
+
+@pytest.mark.parametrize("failures", [1, 10_000])
+def test_an_estimate_that_fails_beside_the_loop_is_counted_and_the_change_judged_again(failures):
+    """Synthetic stream at the ready pose, 0.9 kg hung on at 1 s: the executor's first job fails (or every job).
+    update never raises and returns finite torques within the limits; each failure is counted with its message;
+    after one failure the change is estimated again and compensated, after nothing but failures nothing is."""
+    robot = Robot.panda()
+    ex = _FailingFirst(failures)
+    est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0), executor=ex)
+    noise, theta, limit = np.random.default_rng(2), np.array([0.9, 0.03, -0.02, 0.1]), robot.torque_limits()
+    for k in range(2500):
+        tau = robot.payload_torque(Q_READY, theta) if k >= 1000 else np.zeros(7)
+        comp = est.update(Q_READY, np.zeros(7), tau + 0.01 * noise.normal(size=7))
+        assert np.all(np.isfinite(comp)) and np.all(np.abs(comp) <= limit)
+    assert est.failed == 1 if failures == 1 else ex.jobs - 1 <= est.failed <= ex.jobs   # (the last may be out)
+    assert "ValueError: test" in est.failure
+    assert within(est.theta[0], 0.9) if failures == 1 else est.theta[0] == 0.0, est.history
+
+
 @pytest.mark.parametrize("held", [0.3, 1.5])
 def test_a_payload_becomes_a_state_to_return_to_once_its_level_held(held):
     """Synthetic stream at the ready pose, the arm still: 0.8 kg hung on, swapped for 1.6 kg `held` seconds later. Its
