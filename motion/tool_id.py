@@ -109,14 +109,15 @@ def partial_out(Y, tau, Z):
 
 
 def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFitSettings = ToolFitSettings(),
-             dt: float = 1e-3):
+             dt: float = 1e-3, keep=None):
     """The tool from a motion: q, dq, ddq, tau_ext (T, n) (tau_ext in the paper's sign, filtered alike with dq,
     diagnosis.logs.prepare; the tool's whole torque, nothing of it configured). reference: (q, dq, ddq, tau_ext)
     (T', n) of the same motion with the flange empty (row k beside row k): its tau_ext is subtracted, which removes the arm's
     own model error and the sensor's offsets (Khalil, Gautier, Lemoine 2007: loaded minus unloaded), so the tool's
     whole torque is fitted, its weight at every pose included (what gives the mass); without it the joints' friction
     and rotor inertia are partialled out, and the arm's model error of links 5-7 stays in the result (a note says so).
-    dt: the samples' period [s] (the q_columns' derivatives). Returns a ToolFit."""
+    dt: the samples' period [s] (the q_columns' derivatives). keep (T,) bool: the rows that may be fitted (None:
+    all; the derivatives still use every row). Returns a ToolFit."""
     arrays = [np.asarray(a, dtype=float) for a in (q, dq, ddq, tau_ext)]
     n, s = robot.n, settings
     if reference is not None:
@@ -127,6 +128,11 @@ def fit_tool(robot: Robot, q, dq, ddq, tau_ext, reference=None, settings: ToolFi
     if not all(np.isfinite(a).all() for a in arrays):
         raise ValueError("q, dq, ddq, tau_ext: expected finite values, found NaN or inf")
     rows = np.arange(s.edge, len(arrays[0]) - s.edge, s.every)
+    if keep is not None:
+        keep = np.asarray(keep)
+        if keep.dtype != bool or keep.shape != (len(arrays[0]),):
+            raise ValueError(f"keep: expected a ({len(arrays[0])},) bool array, found {keep.dtype} {keep.shape}")
+        rows = rows[keep[rows]]
     if len(rows) < 50:
         raise ValueError(f"q: expected at least {50 * s.every + 2 * s.edge} samples, found {len(arrays[0])}")
     q, dq, ddq, tau = (a[rows] for a in arrays)

@@ -501,3 +501,41 @@ def test_a_stale_row_gets_the_torque_the_robot_applied_there_not_its_neighbours_
     across = np.stack([np.interp(i, i[~stale], raw["tau_J"][~stale, j]) for j in range(n)], axis=1)
     missed = np.abs(across - applied)[stale]
     assert np.all(np.abs(missed - kick[stale] / 2) < 1e-3)
+
+
+def test_rows_near_a_missed_cycle_are_left_out_of_the_fit():
+    """A run that missed cycles: its log's stamps skip them, and on a robot the torque around them is not the one the
+    log's interpolation shows. Synthetic runs of the motion (a fresh random tool's closed-form torque, 2 mNm noise)
+    with 40 gaps in the tool run whose neighbouring rows (2 ms each side) carry a 0.3 Nm error: near_gaps marks the
+    rows within GAP_MARGIN of each gap and no other, and fit_logs, which leaves them out, meets the targets (mass 10 g,
+    CoM 3 mm) where fitting every row misses them."""
+    from diagnosis.logs import Log
+    from motion.tool_id import truth_of
+    from robot.identify import GAP_MARGIN, fit_logs, near_gaps
+    rng, robot = np.random.default_rng(23), Robot.panda()
+    q, dq, ddq = excitation(robot, Q_READY, MotionSettings())
+    every = slice(None, None, 5)
+    q, dq, ddq = q[every], dq[every], ddq[every]
+    dt, T = 5e-3, len(q)
+    t = dt * np.arange(T)
+    tool = random_tool(rng)
+    tau_tool = robot.body_regressor(q, dq, ddq) @ params_of_tool(tool)
+    noise = lambda: 0.002 * rng.normal(size=q.shape)
+    starts = np.sort(rng.choice(np.arange(50, T - 50, 60), size=40, replace=False))
+    bad = np.zeros(T, dtype=bool)
+    for i in starts:
+        bad[i - 1:i + 2] = True                          # (2 rows of 5 ms each side of the missed stamp: within 5 ms)
+    tau_run = tau_tool + noise() + 0.3 * bad[:, None] * rng.choice([-1.0, 1.0], size=(T, 7))
+    log = lambda tau, gaps: Log(t=t, q=q, dq=dq, ddq=ddq, tau_J=None, tau_ext=tau,
+                                info={"dt": dt, "gap_intervals": [(t[i] - 0.5 * dt, t[i] + 0.5 * dt) for i in gaps]})
+    run, reference = log(tau_run, starts), log(noise(), [])
+    near = near_gaps(run)
+    want = np.zeros(T, dtype=bool)
+    for i in starts:
+        want |= np.abs(t - t[i]) < 0.5 * dt + GAP_MARGIN
+    assert np.array_equal(near, want) and not near_gaps(reference).any()
+    truth = truth_of(tool)
+    within = lambda fit: abs(fit.value["mass"] - truth["mass"]) <= 0.01 and max(
+        abs(fit.value[k] - truth[k]) for k in ("com_x", "com_y", "com_z")) <= 0.003
+    assert within(fit_logs(robot, run, reference))
+    assert not within(fit_logs(robot, log(tau_run, []), reference))
