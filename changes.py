@@ -211,9 +211,9 @@ class ChangeModel:
         s, ref, S = self.s, self.reference, self.s.short
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
-        dq = np.asarray(q) - ref.q
-        g = s.model_error * ref.gradient @ dq
-        bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (dq @ dq) / s.bias_length ** 2))   # the offset's
+        moved = np.asarray(q) - ref.q                                  # (n,) the pose's change since the reference
+        g = s.model_error * ref.gradient @ moved
+        bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (moved @ moved) / s.bias_length ** 2))   # the offset's
         #                                                                     change since the reference, per joint
         return 2 * self.noise + fric + moving * moving + bias, g
 
