@@ -75,6 +75,12 @@ def load_log(path, config: LogConfig = LogConfig()) -> Log:
         logger's `duration` in ms since the start; rows with a wrong number of fields or a non-number are dropped
         and counted in info["bad_rows"] (their file lines in info["bad_lines"]), up to config.max_bad_rows.
     A time gap longer than config.max_gap is refused with ValueError (not split, not interpolated)."""
+    raw, notes = read_log(path, config)
+    return prepare(raw, config, source=os.fspath(path), notes=notes)
+
+
+def read_log(path, config: LogConfig = LogConfig()) -> tuple[dict, dict]:
+    """(raw arrays, notes) of a log file as load_log reads it, before prepare (formats and errors: load_log)."""
     try:
         path = os.fspath(path)
     except TypeError:
@@ -89,7 +95,7 @@ def load_log(path, config: LogConfig = LogConfig()) -> Log:
         raw, notes = read_csv(path, config.max_bad_rows)
     else:
         raise ValueError(f"path: expected a .npz or .csv log, found extension {ext!r}")
-    return prepare(raw, config, source=path, notes=notes)
+    return raw, notes
 
 
 def read_npz(path) -> dict:

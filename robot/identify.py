@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 
 import numpy as np
 
-from diagnosis.logs import LogConfig, _interp, _stale_rows, load_log, prepare
+from diagnosis.logs import LogConfig, _interp, _stale_rows, prepare, read_log
 from dynamics import Robot
 from motion.inertia import rigid_body
 from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
@@ -79,23 +80,37 @@ def near_gaps(log, margin: float = GAP_MARGIN) -> np.ndarray:
     return near
 
 
-def prepared(log: dict, fill_stale: bool = False):
-    """A franka.py run's arrays as a diagnosis Log (filtered as LOG says, ddq); stale rows (q, dq, tau_J the last
-    row's again) dropped, or with fill_stale and the run's tau_cmd filled by _stale_filled (not the fit's default:
-    on the benchmark's seeds 0-9 its intervals covered less, docs/tool_identification.md); info counts them."""
+def prepared(log: dict, fill_stale: bool = False, source: str = "run", notes: dict | None = None):
+    """A run's arrays (franka.py's, or a log file's: load_run) as a diagnosis Log (filtered as LOG says, ddq), one
+    row per cycle the controller ran: the motion's phase is the row, not the robot's clock, which runs on through a
+    missed cycle. So the rows keep their order at one period each (two runs of the motion pair row k with row k) and
+    info marks where the robot's stamps skipped (gap_intervals, cycles_missed: near_gaps). Stale rows (q, dq, tau_J
+    the last row's again) dropped, or with fill_stale and the run's tau_cmd filled by _stale_filled (not the fit's
+    default: on the benchmark's seeds 0-9 its intervals covered less, docs/tool_identification.md)."""
     raw = {k: np.asarray(log[k], dtype=float) for k in ("t", "q", "dq", "tau_J", "tau_ext") if k in log}
-    notes = {}
-    if "t" in raw and len(raw["t"]) > 2:      # one row per cycle the controller ran: its motion's phase is the row,
-        t = raw["t"]                          #   not the robot's clock, which runs on through a missed cycle; so the
-        step = np.diff(t)                     #   rows keep their order at one period each, and the cycles missed
-        dt = float(np.median(step))           #   between two rows mark where the states are not one period apart
+    notes = dict(notes or {})
+    if "t" in raw and len(raw["t"]) > 2:
+        t = raw["t"]
+        step = np.diff(t)
+        if not np.all(step > 0):
+            i = int(np.flatnonzero(~(step > 0))[0]) + 1
+            raise ValueError(f"t: expected strictly increasing time stamps, one row per control cycle, found "
+                             f"t[{i}] = {t[i]!r} after t[{i - 1}] = {t[i - 1]!r}")
+        dt = float(np.median(step))
         gaps = np.flatnonzero(step > 1.5 * dt)
         raw["t"] = t[0] + dt * np.arange(len(t))
-        notes = {"gap_intervals": [(float(raw["t"][i]), float(raw["t"][i + 1])) for i in gaps],
-                 "cycles_missed": int(np.sum(np.round(step[gaps] / dt) - 1))}
+        notes.update(gap_intervals=[(float(raw["t"][i]), float(raw["t"][i + 1])) for i in gaps],
+                     cycles_missed=int(np.sum(np.round(step[gaps] / dt) - 1)))
     if fill_stale and "tau_cmd" in log and "tau_J" in raw and len(raw["t"]) > 2:
         raw, notes["stale_rows_filled"] = _stale_filled(raw, np.asarray(log["tau_cmd"], dtype=float))
-    return prepare(raw, LOG, source="run", notes=notes)
+    return prepare(raw, LOG, source=source, notes=notes)
+
+
+def load_run(path):
+    """A log file of the motion (a franka.py --log .npz, a libfranka CSV: one row per control cycle) read as the run
+    it records (prepared), so a file and the run it was written from pair their rows alike."""
+    raw, notes = read_log(path, LOG)
+    return prepared(raw, source=os.fspath(path), notes=notes)
 
 
 def _stale_filled(raw: dict, tau_cmd):
@@ -206,7 +221,7 @@ def abandoned_in(path) -> float | None:
         with np.load(path, allow_pickle=False) as z:
             t = float(z["abandoned_at_s"]) if "abandoned_at_s" in z else np.nan
     except (OSError, ValueError):
-        return None                                    # load_log reports a file it cannot read
+        return None                                    # load_run reports a file it cannot read
     return None if np.isnan(t) else t
 
 
@@ -246,7 +261,7 @@ def franka_identify(args, run_loop, make_backend) -> int:
                                                          np.diag(args.sim_tool[4:7]), "--sim-tool")
     if args.reference is not None:
         _refuse_abandoned(args.reference, "--reference")
-    reference = None if args.reference is None else load_log(args.reference, LOG)
+    reference = None if args.reference is None else load_run(args.reference)
     if args.sim:
         if reference is None:
             ref_log, ref_summary, _ = run_motion(sim_backend(args.seed, None, 0), robot, run_loop)
@@ -286,8 +301,8 @@ def log_main(argv=None, prog: str = "rme.py identify") -> int:
         _refuse_abandoned(args.log, "log")
         if args.reference is not None:
             _refuse_abandoned(args.reference, "--reference")
-        log = load_log(args.log, LOG)
-        reference = None if args.reference is None else load_log(args.reference, LOG)
+        log = load_run(args.log)
+        reference = None if args.reference is None else load_run(args.reference)
         fit = fit_logs(robot, log, reference)
     except ValueError as err:
         print(f"{prog}: {err}", file=sys.stderr)

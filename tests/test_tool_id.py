@@ -539,3 +539,48 @@ def test_rows_near_a_missed_cycle_are_left_out_of_the_fit():
         abs(fit.value[k] - truth[k]) for k in ("com_x", "com_y", "com_z")) <= 0.003
     assert within(fit_logs(robot, run, reference))
     assert not within(fit_logs(robot, log(tau_run, []), reference))
+
+
+def test_a_log_file_pairs_its_rows_by_control_cycle_as_the_run_does(tmp_path, capsys):
+    """rme.py identify LOG --reference REF reads each file as the run it records: one row per control cycle, the
+    robot's stamps skipping the cycles it missed. Synthetic runs of the motion: what both runs carry (a random hand
+    already on the flange, a reflected rotor inertia 0.3 ddq and friction 0.3 tanh(dq / 0.02) Nm), and a fresh
+    random tool's closed-form torque in one, whose stamps skip 40 runs of 1-10 cycles. Written as .npz and as a
+    libfranka CSV (tau_ext_hat_filtered, its sign), both give the in-memory run's fit and meet the targets (mass
+    10 g, CoM 3 mm); paired in robot time (load_log, resampled on the clock) the hand's torque at other states is
+    left in the fit and they are missed."""
+    from diagnosis.logs import load_log
+    from motion.tool_id import truth_of
+    from robot import identify
+    rng, robot = np.random.default_rng(29), Robot.panda()
+    q, dq, ddq = (x[::2] for x in excitation(robot, Q_READY, MotionSettings()))   # 500 Hz: half the file's rows
+    T, n, dt = len(q), robot.n, 2e-3
+    tool = random_tool(rng)
+    hand = robot.body_regressor(q, dq, ddq) @ params_of_tool(random_tool(rng))
+    arm = hand + 0.3 * ddq + 0.3 * np.tanh(dq / 0.02)
+    noise = lambda: 0.002 * rng.normal(size=q.shape)
+    skipped = np.zeros(T)
+    skipped[rng.choice(np.arange(100, T - 100), size=40, replace=False)] = rng.integers(1, 11, size=40)
+    runs = {"reference": dict(t=dt * np.arange(T), q=q, dq=dq, tau_ext=arm + noise()),
+            "tool": dict(t=dt * (np.arange(T) + np.cumsum(skipped)), q=q, dq=dq,
+                         tau_ext=arm + robot.body_regressor(q, dq, ddq) @ params_of_tool(tool) + noise())}
+    for name, run in runs.items():
+        np.savez(tmp_path / f"{name}.npz", **run, tau_ext_sign="paper")
+        cols = ["time"] + [f"state.{k}[{i}]" for k in ("q", "dq", "tau_ext_hat_filtered") for i in range(n)]
+        rows = np.column_stack([1e3 * run["t"], run["q"], run["dq"], -run["tau_ext"]])
+        np.savetxt(tmp_path / f"{name}.csv", rows, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+    truth = truth_of(tool)
+    within = lambda v: abs(v["mass"] - truth["mass"]) <= 0.01 and max(
+        abs(v[k] - truth[k]) for k in ("com_x", "com_y", "com_z")) <= 0.003
+    in_memory = identify.fit_logs(robot, identify.prepared(runs["tool"]), identify.prepared(runs["reference"]))
+    assert within(in_memory.value)
+    for ext in ("npz", "csv"):
+        assert identify.log_main([str(tmp_path / f"tool.{ext}"), "--reference", str(tmp_path / f"reference.{ext}"),
+                                  "--json"]) == 0
+        rep = json.loads(capsys.readouterr().out)
+        values = {k: p["value"] for k, p in rep["fit"]["parameters"].items()}
+        assert all(np.isclose(values[k], in_memory.value[k], rtol=0, atol=1e-6) for k in ("mass", "com_x", "com_y",
+                                                                                            "com_z"))
+        clock = identify.fit_logs(robot, load_log(tmp_path / f"tool.{ext}", identify.LOG),
+                                  load_log(tmp_path / f"reference.{ext}", identify.LOG))
+        assert not within(clock.value)
