@@ -154,12 +154,22 @@ def fit_logs(robot: Robot, log, reference=None) -> ToolFit:
     return fit_tool(robot, log.q, log.dq, log.ddq, torque_of(robot, log), reference=ref, dt=log.info["dt"], keep=keep)
 
 
-def report(fit: ToolFit, truth=None, motion: dict | None = None) -> dict:
+def rows_of(log) -> dict:
+    """What reading a run or log file did to its rows (a prepared Log): counted for the report."""
+    i = log.info
+    return {"rows": len(log.t), "cycles_missed": i.get("cycles_missed", 0), "skips": len(i.get("gap_intervals", ())),
+            "rows_near_skips_not_fitted": int(near_gaps(log).sum()), "stale_rows_interpolated": i.get("stale_rows", 0),
+            "malformed_rows_dropped": i.get("bad_rows", 0), "nan_rows_dropped": i.get("nan_rows", 0)}
+
+
+def report(fit: ToolFit, truth=None, motion: dict | None = None, runs: dict | None = None) -> dict:
     """What --json prints: mass, com, inertia (F) and the three forms, the fit per parameter, the motion's figures,
-    and beside a known tool its error per parameter."""
+    the rows of each run (runs: name -> prepared Log, rows_of) and beside a known tool its error per parameter."""
     out = {**forms(fit.tool), "fit": fit.report()}
     if motion is not None:
         out["motion"] = motion
+    if runs:
+        out["rows"] = {name: rows_of(log) for name, log in runs.items() if log is not None}
     if truth is not None:
         t = truth_of(truth)
         out["truth"] = t
@@ -182,6 +192,11 @@ def format_text(rep: dict) -> str:
               f"  mass {d['mass']} kg, center of mass {d['center_of_mass']} m, inertia {d['inertia']} kg m^2",
               "libfranka (added to Desk's end effector; refused while a controller runs):", f"  {s['call']}",
               "franka_ros2:", f"  {rep['franka_ros2_set_load']['command']}"]
+    for name, r in rep.get("rows", {}).items():
+        lines.append(f"{name} run: {r['rows']} rows; the robot's stamps skip {r['skips']} times ({r['cycles_missed']} "
+                     f"cycles missed), {r['rows_near_skips_not_fitted']} rows near them not fitted; "
+                     f"{r['stale_rows_interpolated']} stale rows interpolated, {r['malformed_rows_dropped']} malformed "
+                     f"and {r['nan_rows_dropped']} NaN rows dropped")
     if "motion" in rep:
         m = rep["motion"]
         lines.append(f"motion: {m.get('seconds', 0.0):.2f} s, max |dq| {max(m.get('max_abs_dq') or [0]):.3f} rad/s, "
@@ -282,10 +297,11 @@ def franka_identify(args, run_loop, make_backend) -> int:
         np.savez(args.log, **log, tau_ext_sign="paper", abandoned_at_s=np.nan if abandoned is None else abandoned)
     if abandoned is not None:
         return _emit_abandoned(summary, args, "tool" if args.sim else "identification")
-    fit = fit_logs(robot, prepared(log), reference)
+    run = prepared(log)
+    fit = fit_logs(robot, run, reference)
     start = backend.initial.q if center is None else center
     summary["storage"] = dataclasses.asdict(storage_check(fit.tool, start))   # this motion, this tool
-    return _emit(report(fit, truth, summary), args, fit)
+    return _emit(report(fit, truth, summary, {"tool": run, "reference": reference}), args, fit)
 
 
 def log_main(argv=None, prog: str = "rme.py identify") -> int:
@@ -307,4 +323,4 @@ def log_main(argv=None, prog: str = "rme.py identify") -> int:
     except ValueError as err:
         print(f"{prog}: {err}", file=sys.stderr)
         return 2
-    return _emit(report(fit), args, fit)
+    return _emit(report(fit, runs={"tool": log, "reference": reference}), args, fit)

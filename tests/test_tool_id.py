@@ -546,8 +546,8 @@ def test_a_log_file_pairs_its_rows_by_control_cycle_as_the_run_does(tmp_path, ca
     robot's stamps skipping the cycles it missed. Synthetic runs of the motion: what both runs carry (a random hand
     already on the flange, a reflected rotor inertia 0.3 ddq and friction 0.3 tanh(dq / 0.02) Nm), and a fresh
     random tool's closed-form torque in one, whose stamps skip 40 runs of 1-10 cycles. Written as .npz and as a
-    libfranka CSV (tau_ext_hat_filtered, its sign), both give the in-memory run's fit and meet the targets (mass
-    10 g, CoM 3 mm); paired in robot time (load_log, resampled on the clock) the hand's torque at other states is
+    libfranka CSV (tau_ext_hat_filtered, its sign), both give the in-memory run's fit, meet the targets (mass
+    10 g, CoM 3 mm) and report the skips and cycles missed; paired in robot time (load_log, resampled on the clock) the hand's torque at other states is
     left in the fit and they are missed."""
     from diagnosis.logs import load_log
     from motion.tool_id import truth_of
@@ -578,6 +578,8 @@ def test_a_log_file_pairs_its_rows_by_control_cycle_as_the_run_does(tmp_path, ca
         assert identify.log_main([str(tmp_path / f"tool.{ext}"), "--reference", str(tmp_path / f"reference.{ext}"),
                                   "--json"]) == 0
         rep = json.loads(capsys.readouterr().out)
+        assert (rep["rows"]["tool"]["skips"], rep["rows"]["tool"]["cycles_missed"]) == (40, skipped.sum())
+        assert rep["rows"]["reference"]["cycles_missed"] == 0
         values = {k: p["value"] for k, p in rep["fit"]["parameters"].items()}
         assert all(np.isclose(values[k], in_memory.value[k], rtol=0, atol=1e-6) for k in ("mass", "com_x", "com_y",
                                                                                             "com_z"))
