@@ -27,8 +27,6 @@ class DetectorSettings:
     end_window: tuple = (491, 500)                      # Alg. 1 "end stabilization"
     force_window: tuple = (451, 500)                    # Alg. 1 mean external force
     side_force_limit: float = 2.5                       # N, |F_x| and |F_y| below it: App. A
-    algorithm: str = "as_printed"                       # Alg. 1 verbatim, the one algorithm here (the streaming
-                                                        #   estimator's own decisions: changes.py)
     refractory: int = 350                               # ours: samples after a detection before the next one;
                                                         #   then the window starts after the earliest check that
                                                         #   found the change settled (Alg. 1 does not say)
@@ -47,7 +45,6 @@ class DetectorSettings:
         c.number("activation_threshold", self.activation_threshold, "(0, 1e12]", "Nm^2")
         c.number("stabilisation_threshold", self.stabilisation_threshold, "(0, 1e12]", "Nm^2")
         c.number("side_force_limit", self.side_force_limit, "(0, 1e4]", "N")
-        c.choice("algorithm", self.algorithm, ("as_printed",))
         c.number("refractory", self.refractory, "0..1000000", "samples")
         c.number("lam", self.lam, "[0, 10]")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import special
@@ -14,6 +14,7 @@ import checks
 from dynamics import phi_of, theta_of   # noqa: F401  (vi.phi_of, vi.theta_of: the estimate's parameters)
 
 LOG_2PI = float(np.log(2.0 * np.pi))
+ADAM = (0.9, 0.999, 1e-8)   # Adam's moment decays and epsilon: Kingma and Ba 2015's defaults
 
 
 @dataclass(frozen=True)
@@ -21,12 +22,8 @@ class VISettings:
     """Settings of fit(). mu and sigma are optimised in units of the starting q (see fit)."""
     sigma_prior: tuple = (0.5, 0.02, 0.02, 0.05)   # kg, m, m, m: Sec. 5 ("empirically tuned")
     lr: float = 0.025                  # Adam learning rate, Sec. 4.2
-    betas: tuple = (0.9, 0.999)        # Adam moment decays, Kingma and Ba 2015 defaults
-    adam_eps: float = 1e-8             # Kingma and Ba 2015
     clip_norm: float = 1.0             # global gradient-norm clip, authors' public code (paper_notes)
     samples: int = 16                  # Monte Carlo samples per step; ours (authors' code: 1; `python sim.py vi-bench`)
-    antithetic: bool = True            # ours: samples in pairs (eps, -eps) (variance reduction; samples even)
-    control_variate: bool = True       # ours: quadratic control variate for the sigma gradient (Miller et al. 2017)
     max_iterations: int = 2500         # authors' public code
     min_iterations: int = 10           # ours: first convergence check (against the start)
     check_every: int = 10              # ours: iterations between convergence checks
@@ -49,7 +46,6 @@ class VISettings:
                                        #   flexible load a hand carries, 1-10 Hz (the steel beam of docs/real_logs.md:
                                        #   1.8-4.3 Hz); below 1 Hz a 0.2 s window holds a drift, not a swing
     observed_ratio: float = 0.5        # ours: a parameter counts as observed if its posterior std < this x prior std
-    keep_history: bool = False         # record mu, sigma and the -ELBO estimate at every iteration
     conflict: float = 5.0              # ln Bayes factor of a broad prior over the network's beyond which the window
                                        #   conflicts with the network (fit's alternative): "very strong" evidence,
                                        #   2 ln B > 10 (Kass and Raftery 1995)
@@ -59,7 +55,7 @@ class VISettings:
         (the Panda's: 0.005-0.09 Nm), 10^4 iterations x 256 samples (about 10 s); prior stds of 1e3 (flat)."""
         c = checks
         c.array("sigma_prior", self.sigma_prior, (4,), "(0, 1e3]", "kg, m, m, m")
-        for name, interval in (("lr", "(0, 1]"), ("adam_eps", "[0, 1]"), ("clip_norm", "(0, 1e3]"), ("average", "[0, 1)"),
+        for name, interval in (("lr", "(0, 1]"), ("clip_norm", "(0, 1e3]"), ("average", "[0, 1)"),
                                ("tol", "(0, 10]"), ("noise_scale", "(0, 1e3]"), ("noise_floor", "[0, 10]"),
                                ("offset_std", "[0, 10]"), ("load_share", "[0, 1]"), ("slow_gain", "[0, 10]"),
                                ("motion_gain", "[0, 100]"), ("motion_max", "[0, 100]"), ("observed_ratio", "(0, 1]"), ("conflict", "(0, 1e3]"),
@@ -67,12 +63,10 @@ class VISettings:
                                ("map_steps", "0..1000"), ("reference_samples", "1..10000")):
             c.number(name, getattr(self, name), interval, "Nm" if name in ("noise_floor", "offset_std") else "")
         c.number("min_iterations", self.min_iterations, f"0..{self.max_iterations}", "(max_iterations)")
-        c.array("betas", self.betas, (2,), "[0, 1)")
         c.array("swing_frequencies", self.swing_frequencies, (None,), "(0, 500]", "Hz")
-        for name in ("antithetic", "control_variate", "warm_start", "keep_history"):
-            c.flag(name, getattr(self, name))
-        if self.antithetic and self.samples % 2:
-            raise ValueError(f"samples: expected an even number with antithetic pairs, found {self.samples}")
+        c.flag("warm_start", self.warm_start)
+        if self.samples % 2:
+            raise ValueError(f"samples: expected an even number (antithetic pairs), found {self.samples}")
         c.choice("noise_rule", self.noise_rule, ("residual", "range"))
 
 
@@ -103,7 +97,6 @@ class Posterior:
     neg_elbo: float          # -ELBO at (mean, std), Monte Carlo with 64 samples
     noise_std: np.ndarray    # (n,) the likelihood's per-joint noise std
     observed: np.ndarray     # (4,) bool: marginal_std < observed_ratio x the prior's std (the data informed it)
-    history: np.ndarray | None = field(default=None, repr=False)   # (iterations, 9): mu, sigma, -ELBO
     prior: str = "network"   # the prior q started from: "network", or "broad" where the window conflicts with it
     prior_mean: np.ndarray | None = None   # (4,) that prior's mean
 
@@ -434,14 +427,14 @@ def fit(Y, tau, mu_prior, settings=VISettings(), rng=None, noise_std=None, sigma
         C = np.linalg.cholesky(np.linalg.inv(H))                     # C C^T = H^-1, C[0, 1:] = 0
     else:
         mu0, sigma0, C = np.r_[max(mu_prior[0], 0.0), mu_prior[1:]], sp.copy(), np.diag(sp)
-    x, it, converged, history = _adam(window, mu_prior, sp, mu0, sigma0, C, settings, rng)
+    x, it, converged = _adam(window, mu_prior, sp, mu0, sigma0, C, settings, rng)
     mean, std = mu0 + C @ x[:4], sigma0 * np.exp(x[4:])
     cov = np.linalg.inv(gauss_newton(mean, window, mu_prior, sp)[2])      # Laplace covariance at the mean
     eps = rng.standard_normal((64, 4))                               # a final, less noisy -ELBO estimate
     value = neg_elbo_grad(mean, np.log(std), window, mu_prior, sp, eps)[0]
     return Posterior(mean, std, cov, it, time.perf_counter() - t0, converged, "converged" if converged else
                      "max_iterations", value, window.noise_std, np.sqrt(np.diag(cov)) < settings.observed_ratio * sp,
-                     history, source, mu_prior.copy())
+                     source, mu_prior.copy())
 
 
 def log_evidence(window, mu_prior, sigma_prior, steps=20, box=None, start=None):
@@ -482,23 +475,23 @@ def prior_conflict(window, prior, alternative, steps=20, start=None):
     return log_evidence(window, mean, std, steps, (lo, hi)) - log_evidence(window, *prior, steps, start=start)
 
 
-def _draws(rng, chunk, samples, antithetic):
-    """eps (chunk, samples, 4); antithetic: pairs (eps, -eps), which cancel the odd terms of the estimator."""
-    half = rng.standard_normal((chunk, samples // 2 if antithetic else samples, 4))
-    return np.concatenate([half, -half], axis=1) if antithetic else half
+def _draws(rng, chunk, samples):
+    """eps (chunk, samples, 4) in antithetic pairs (eps, -eps), which cancel the odd terms of the estimator."""
+    half = rng.standard_normal((chunk, samples // 2, 4))
+    return np.concatenate([half, -half], axis=1)
 
 
 def _adam(window, mu_prior, sp, mu0, sigma0, C, s, rng):
-    """Projected Adam on x = (z, w) (8,). Returns (running average of x, iterations, converged, history).
+    """Projected Adam on x = (z, w) (8,), ADAM's constants. Returns (running average of x, iterations, converged).
 
     d/dz = C^T d/dmu, d/dw = d/dlog_sigma; the prior's part of C^T d/dmu is affine in z: q0 + Q z, Q = C^T P C,
     q0 = C^T P (mu0 - mp). Control variate (Miller et al. 2017): the NLL's quadratic model at mu0 (Hessian
     H0 = J^T A J) adds (H0 (sigma eps_k)) * eps_k * sigma to each sample's d/dlog_sigma, of known mean diag(H0)
     sigma^2: swapping one for the other keeps the estimate unbiased without the noise of eps_k^2 (its part in d/dmu
     cancels within antithetic pairs)."""
-    b1, b2 = s.betas
+    b1, b2, adam_eps = ADAM
     A, b, P = window.A, window.b, 1.0 / sp**2
-    H0 = gauss_newton(mu0, window, mu_prior, sp)[2] - np.diag(P) if s.control_variate else np.zeros((4, 4))
+    H0 = gauss_newton(mu0, window, mu_prior, sp)[2] - np.diag(P)
     dH0 = np.diag(H0).copy()
     Q, q0 = C.T @ (P[:, None] * C), C.T @ (P * (mu0 - mu_prior))
     z_min = -mu0[0] / C[0, 0]                                         # mu_m >= 0  <=>  z_0 >= z_min
@@ -506,10 +499,9 @@ def _adam(window, mu_prior, sp, mu0, sigma0, C, s, rng):
     z, w = x[:4], x[4:]                                               # views: updated with x
     mean_k = np.full(s.samples, 1.0 / s.samples)                      # (K,): averages over the samples
     converged, chunk = False, 64
-    history = np.empty((s.max_iterations, 9)) if s.keep_history else None
     for t in range(1, s.max_iterations + 1):
         if (t - 1) % chunk == 0:
-            E = _draws(rng, chunk, s.samples, s.antithetic)
+            E = _draws(rng, chunk, s.samples)
         eps = E[(t - 1) % chunk]                                      # (K, 4)
         mu, sigma = mu0 + C @ z, sigma0 * np.exp(w)
         _, dtheta = likelihood_grad(mu + sigma * eps, A, b, value=False)   # (K, 4)
@@ -522,16 +514,14 @@ def _adam(window, mu_prior, sp, mu0, sigma0, C, s, rng):
         m1 += (1 - b1) * (g - m1)                                     # m1 = b1 m1 + (1 - b1) g
         m2 += (1 - b2) * (g * g - m2)
         c1, c2 = 1 - b1**t, np.sqrt(1 - b2**t)                        # Adam's bias corrections
-        x -= (s.lr * c2 / c1) * m1 / (np.sqrt(m2) + s.adam_eps * c2)
+        x -= (s.lr * c2 / c1) * m1 / (np.sqrt(m2) + adam_eps * c2)
         if x[0] < z_min:                                              # projection: mu_m >= 0
             x[0] = z_min
         avg += (1 - s.average) * (x - avg)                            # running average of the iterates
-        if history is not None:
-            history[t - 1] = *mu, *sigma, neg_elbo_grad(mu, np.log(sigma), window, mu_prior, sp, eps)[0]
         if t % s.check_every == 0:
             current = avg / (1 - s.average**t)
             if t >= s.min_iterations and np.max(np.abs(current - last)) < s.tol:
                 converged = True
                 break
             last = current
-    return avg / (1 - s.average**t), t, converged, None if history is None else history[:t]
+    return avg / (1 - s.average**t), t, converged

@@ -152,7 +152,7 @@ def test_pseudo_force_recovers_applied_force():
     (dict(window=1), "window"), (dict(end_window=(491, 501)), "end_window"),
     (dict(check_windows=((0, 10),)), "check_windows[0]"), (dict(check_windows=()), "check_windows"),
     (dict(activation_threshold=0.0), "activation_threshold"), (dict(side_force_limit=np.nan), "side_force_limit"),
-    (dict(algorithm="referred"), "algorithm"), (dict(refractory=-1), "refractory"), (dict(lam=-1.0), "lam"),
+    (dict(refractory=-1), "refractory"), (dict(lam=-1.0), "lam"),
     (dict(stabilisation_threshold=0.0), "stabilisation_threshold"),
 ])
 def test_invalid_settings_raise_value_error(kwargs, name):

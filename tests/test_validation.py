@@ -123,7 +123,7 @@ def _edge_settings(rng):
     change_edges = dict(short=int(rng.choice([10, 250])), rest_noise=(1e-6,) * 7, friction=(100.0,) * 7,
                         friction_slope=(1e-6,) * 7, model_error=float(rng.choice([0.0, 1.0])), push_force=1e4,
                         push_arm=1e-3, detect=float(rng.choice([1e-6, 1e6])), confidence=0.999999)
-    vi_edges = dict(sigma_prior=(1e3,) * 4, lr=1.0, clip_norm=1e3, noise_floor=10.0, noise_scale=1e3, adam_eps=1.0,
+    vi_edges = dict(sigma_prior=(1e3,) * 4, lr=1.0, clip_norm=1e3, noise_floor=10.0, noise_scale=1e3,
                     tol=10.0, map_steps=0, offset_std=10.0, motion_gain=100.0, motion_max=100.0, load_share=1.0,
                     slow_gain=10.0, observed_ratio=1.0, min_iterations=0, check_every=10000, average=0.0)
     det_edges = dict(activation_threshold=1e12, stabilisation_threshold=1e12, side_force_limit=1e4, refractory=0,
