@@ -342,8 +342,8 @@ class RME:
         self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
         if not departed:
-            if owed:                         # (what the compensation leaves is its own error: no other change)
-                return self._owed(error)
+            if owed and quiet and k - self._quiet >= s.window:   # (what the compensation leaves is its own error,
+                return self._owed(error)         # over the whole window: no other change, no push, inside it)
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
@@ -356,9 +356,9 @@ class RME:
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
         elif v.best == "wrench" and k - self._dep.since >= S and self._still >= S:
             self._dep.held = v.d                       # a wrench holding the arm still: a return may come under it
-        if owed and (v.best == "noise" or v.best == "payload" and k - self._dep.since >= s.window):
-            return self._owed(error)         # (not under a wrench; a payload's level steady over the whole window:
-            #                                  the estimate covers what is on the flange now, no change inside it)
+        if owed and v.best in ("noise", "payload") and k - self._dep.since >= s.window:
+            return self._owed(error)         # (not under a wrench; the level steady over the whole window: the
+            #                                  estimate covers what is on the flange now, no change inside it)
         if v.best != self._dep.best:
             self._dep.best, self._dep.best_since = v.best, k
         young = max(k - self._dep.since, k - self._dep.best_since) < s.changes.patience * s.rate   # (a level
