@@ -40,10 +40,11 @@ class Estimate:
     t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
     kind: str = "window"             # "detection" (the model found a new payload), "at rest" (the same change
-                                     #   again on the full window, motion's share of its error small), "back" (the level returned to what an
-                                     #   earlier payload leaves: that payload again, no window estimated),
-                                     #   "correction" (nothing changed, and the level corrects the payload held:
-                                     #   the noise hypothesis' posterior, no window estimated) or "window"
+                                     #   again on the full window, motion's share of its error small), "back" (the
+                                     #   level returned to what an earlier payload leaves: that payload again, no
+                                     #   window estimated), "correction" (nothing changed, and the level corrects the
+                                     #   payload held: the noise hypothesis' posterior, no window estimated) or
+                                     #   "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied, or applied only later (update only)
     prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
