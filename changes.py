@@ -100,6 +100,8 @@ class Payloads:
     max_com: float
     earlier: list = field(default_factory=list)
     covs: list = field(default_factory=list)      # their covariances (4, 4)
+    owed: list = field(default_factory=list)      # the level (n,) each one's estimate at rest is owed against (None:
+    #                                               made): a return to it owes that estimate again
 
     @staticmethod
     def plausible(max_mass: float, max_com: float) -> "Payloads":
@@ -108,15 +110,21 @@ class Payloads:
                         max_com)
 
     def forget(self, phi):
-        """Drop phi (4,) from the earlier payloads (it is compensated again now)."""
-        kept = [(p, c) for p, c in zip(self.earlier, self.covs) if np.abs(p - np.asarray(phi)).max() > 1e-9]
-        self.earlier, self.covs = [p for p, _ in kept], [c for _, c in kept]
+        """Drop phi (4,) from the earlier payloads (it is compensated again now): the level (n,) its estimate at rest
+        was owed against, if it was (else None)."""
+        same = [np.abs(p - np.asarray(phi)).max() <= 1e-9 for p in self.earlier]
+        owed = next((o for o, s in zip(self.owed, same) if s), None)
+        self.earlier, self.covs, self.owed = ([x for x, s in zip(xs, same) if not s]
+                                              for xs in (self.earlier, self.covs, self.owed))
+        return owed
 
-    def remember(self, phi, cov, keep: int = 3):
-        """Keep phi (4,) with its covariance (4, 4) as an earlier payload (the newest `keep`)."""
-        phi = np.array(phi, dtype=float)
-        kept = [(p, c) for p, c in zip(self.earlier, self.covs) if np.abs(p - phi).max() > 1e-9][-(keep - 1):]
-        self.earlier, self.covs = [p for p, _ in kept] + [phi], [c for _, c in kept] + [np.array(cov, dtype=float)]
+    def remember(self, phi, cov, owed=None, keep: int = 3):
+        """Keep phi (4,) with its covariance (4, 4) as an earlier payload (the newest `keep`), and the level (n,) its
+        estimate at rest is owed against (None: made)."""
+        self.forget(phi)
+        self.earlier, self.covs, self.owed = (self.earlier[-(keep - 1):] + [np.array(phi, dtype=float)],
+                                              self.covs[-(keep - 1):] + [np.array(cov, dtype=float)],
+                                              self.owed[-(keep - 1):] + [owed])
 
 
 def cholesky(C):

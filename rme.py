@@ -40,10 +40,11 @@ class Estimate:
     t: float = float("nan")        # stream time the estimate was requested: the detection (update only)
     accepted: bool = True            # False: the change did not look like a payload and was not compensated
     kind: str = "window"             # "detection" (the model found a new payload), "at rest" (the same change
-                                     #   again once the arm is still), "back" (the level returned to what an
-                                     #   earlier payload leaves: that payload again, no window estimated),
-                                     #   "correction" (nothing changed, and the level corrects the payload held:
-                                     #   the noise hypothesis' posterior, no window estimated) or "window"
+                                     #   again on the full window, motion's share of its error small), "back" (the
+                                     #   level returned to what an earlier payload leaves: that payload again, no
+                                     #   window estimated), "correction" (nothing changed, and the level corrects the
+                                     #   payload held: the noise hypothesis' posterior, no window estimated) or
+                                     #   "window"
     applied: float = float("nan")    # stream time the compensation started using it (update only)
     reason: str = ""                 # why it was not applied, or applied only later (update only)
     prior_source: str = "network"    # the prior VI started from: "network" (Sec. 4.1; zeros without weights), or
@@ -126,6 +127,7 @@ class RME:
         self._dep = _Departure()                       # the departure from the reference under judgement
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
+        self._refine_error = np.inf                    #   and the mass error [kg] motion left in the last window
         self._quiet = None                             # the sample the level last came to sit at the compensation's
                                                        #   own (None: it does not now)
         self._settled = False                          # it has sat there for `patience` since the compensation took
@@ -329,19 +331,20 @@ class RME:
         self._decided(e, due.level, due.kind, due.refine, due.asked, due.departure)
 
     def _step(self, q, Y, J):
-        """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate at
-        rest on the full window a change first estimated on the short one (or in motion) is owed."""
+        """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate on
+        the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
-        owed = (self._refine is not None and self._still >= s.window   # the change on the full window, at rest
-                and k - self._refine_from >= s.window)
+        error = self._motion_error(Y, J) if self._refine is not None and k - self._refine_from >= s.window else None
+        owed = error is not None and error <= max(self._good(), self._refine_error / 2)   # the change on the full
+        #   window, once motion leaves it within a quarter of the tolerance, or within half of what it left in the last
         moving = m.settling() > s.changes.detect
         departed = m.departure(q, Y) > s.changes.detect
         quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
         self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
         if not departed:
-            if owed:                         # (what the compensation leaves is its own error: no other change)
-                return self._owed()
+            if owed and quiet and k - self._quiet >= s.window:   # (what the compensation leaves is its own error,
+                return self._owed(error)         # over the whole window: no other change, no push, inside it)
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
@@ -354,9 +357,9 @@ class RME:
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
         elif v.best == "wrench" and k - self._dep.since >= S and self._still >= S:
             self._dep.held = v.d                       # a wrench holding the arm still: a return may come under it
-        if owed and (v.best == "noise" or v.best == "payload" and k - self._dep.since >= s.window):
-            return self._owed()              # (not under a wrench; a payload's level steady over the whole window:
-            #                                  the estimate covers what is on the flange now, no change inside it)
+        if owed and v.best in ("noise", "payload") and k - self._dep.since >= s.window:
+            return self._owed(error)         # (not under a wrench; the level steady over the whole window: the
+            #                                  estimate covers what is on the flange now, no change inside it)
         if v.best != self._dep.best:
             self._dep.best, self._dep.best_since = v.best, k
         young = max(k - self._dep.since, k - self._dep.best_since) < s.changes.patience * s.rate   # (a level
@@ -396,6 +399,22 @@ class RME:
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
 
+    def _good(self) -> float:
+        """A quarter of the tolerance the compensated mass is judged by (10 % or 50 g) [kg]: half the bar a mass is
+        acted on at."""
+        return max(0.025 * self.theta[0], 0.0125)
+
+    def _motion_error(self, Y, J) -> float:
+        """The mass error [kg] motion could leave in an estimate on the newest `window` samples, at most: the joints'
+        friction at their mean speeds over it (changes.ChangeModel.friction) and the compensated payload's inertial
+        force m a (a (3,): the flange's mean acceleration over it, J dq differentiated across it), each joint's torque
+        carried into the mass by the least squares of the regressor Y (n, 4) at this pose, signs unknown (summed)."""
+        W, L = self.settings.window, 20
+        dq = self._dq[np.arange(self._k - W, self._k) % len(self._dq)]                 # (W, n)
+        a = J[:3] @ (dq[-L:].mean(axis=0) - dq[:L].mean(axis=0)) * self.settings.rate / (W - L)
+        e = self.model.friction(np.abs(dq).mean(axis=0)) + np.abs(J[:3].T @ (self.theta[0] * a))
+        return float(np.abs(np.linalg.pinv(Y)[0]) @ e)
+
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
         or None when its mass is within half the tolerance (10 % or 50 g) of the compensated one, or not finite (a
@@ -420,12 +439,13 @@ class RME:
         self.history.append(e)
         self._due = _Due(e, self._k, "correction", phi_cov=v.kept_cov, departure=v.d)
 
-    def _owed(self):
-        """The estimate on the full window at rest a change first estimated on the short one (or in motion) is owed,
-        against the level before that change; made only while the level is the compensation's own, noise's or a
-        payload's (not a wrench's holding the arm still)."""
+    def _owed(self, error):
+        """The estimate on the full window a change first estimated on the short one (or in motion) is owed, against
+        the level before that change, motion's share of its mass error `error` [kg] (_motion_error) small; made only
+        while the level is the compensation's own, noise's or a payload's (not a wrench's holding the arm still), and
+        owed again while that share is above a quarter of the tolerance."""
         level, self._refine = self._refine, None
-        return self._estimate_now(self.settings.window, level, "at rest", refine=False)
+        return self._estimate_now(self.settings.window, level, "at rest", refine=error > self._good())
 
     def _algorithm_1(self, q, r, J):
         """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window of tau_ext as it
@@ -494,11 +514,13 @@ class RME:
         self._due, s = None, self.settings
         theta = safe_theta(due.estimate.mean, self.theta, self.settings.max_mass)
         phi = phi_of(theta)
-        if due.kind == "back":               # the change undone: not a state to return to (a press let go)
-            self.payloads.forget(phi)
+        if due.kind == "back":               # the change undone: not a state to return to (a press let go); its
+            due.level = self.payloads.forget(phi)            # estimate at rest owed again, if it was owed then
+            due.refine = due.level is not None
         elif due.kind not in ("at rest", "correction") and self._settled:
-            self.payloads.remember(self._phi, self.model.compensated)   # a state whose level settled (not an
-        self._settled, self._quiet = False, None                        #   estimate in motion the next corrected)
+            self.payloads.remember(self._phi, self.model.compensated, self._refine)   # a state whose level settled
+        if due.kind != "at rest":            # (not an estimate in motion the next corrected; one made again at rest
+            self._settled, self._quiet = False, None                      #   is the same state refined)
         self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         self.theta, self._phi = theta, phi
@@ -510,6 +532,7 @@ class RME:
         if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
             self._refine = due.level if due.refine else None
             self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
+            self._refine_error = self._motion_error(Y, J)
         if due.kind != "back" and due.departure is not None:
             self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 

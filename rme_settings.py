@@ -23,9 +23,8 @@ class RMESettings:
     max_mass: float = 3.0          # kg, Panda's rated payload: the compensation never assumes more
     max_com: float = 0.3           # m, |rx|, |ry|, |rz| of a payload a hand can carry (ours): the payload
                                    #   hypothesis' box (changes.Payloads); an estimate beyond it is not applied
-    rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3): a change
-                                   #   first estimated on the detection window (or in motion) is estimated again
-                                   #   on the full window once the arm has been still that long after it
+    rest_speed: float = 0.01       # rad/s, every joint slower than this counts as still (dq noise is 1e-3): the
+                                   #   level may become the reference, the noise is learned
     max_abs_torque: float = 1e3    # Nm: a sample beyond this, or not finite, is dropped (and counted in `dropped`)
     changes: ChangeSettings = field(default_factory=ChangeSettings)   # what the residual holds (changes.py)
     detector: DetectorSettings | None = None   # None: the model of what changed decides (changes.py); a

@@ -68,7 +68,7 @@ def print_estimates(log, label="RME"):
         when = (f"applied at {e.applied:.3f} s" if e.accepted else f"refused: {e.reason} (not a load)")
         if e.accepted and e.reason:
             when += f" ({e.reason})"
-        what = {"detection": "finds a new payload", "at rest": "estimates again, arm at rest",
+        what = {"detection": "finds a new payload", "at rest": "estimates again on the full window",
                 "back": "returns to an earlier payload", "correction": "corrects the payload held"}
         what = what.get(e.kind, "estimates")
         blind = " (rz: prior, not observed at this pose)" if e.kind != "back" and not e.observed[3] else ""
