@@ -352,8 +352,8 @@ class RME:
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        elif v.best == "wrench" and k - self._dep.since >= S and self._still >= S:
-            self._dep.held = v.d                       # a wrench holding the arm still: a return may come under it
+        if v.best == "wrench" and not moving:         # a wrench's level, not moving (friction allowed) over the
+            self._dep.held = v.d                       #   last 2 short: a step from it may be a return under it
         if owed and (v.best == "noise" or v.best == "payload" and k - self._dep.since >= s.window):
             return self._owed()              # (not under a wrench; a payload's level steady over the whole window:
             #                                  the estimate covers what is on the flange now, no change inside it)
