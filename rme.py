@@ -352,8 +352,6 @@ class RME:
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        if v.best == "wrench" and not moving:         # a wrench's level, not moving (friction allowed) over the
-            self._dep.held = v.d                       #   last 2 short: a step from it may be a return under it
         if owed and (v.best == "noise" or v.best == "payload" and k - self._dep.since >= s.window):
             return self._owed()              # (not under a wrench; a payload's level steady over the whole window:
             #                                  the estimate covers what is on the flange now, no change inside it)
@@ -395,6 +393,8 @@ class RME:
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
+        if v.best == "wrench":               # acted on (nothing to do) with its level not moving (friction allowed):
+            self._dep.held = v.d             #   held, a step from it may be a return or a payload under the push
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
