@@ -243,7 +243,7 @@ class ChangeModel:
         u = np.asarray(d) - np.asarray(e)
         return bool(u @ (u / self.variance(q, Y, moving=False, friction=False)) <= self.s.detect)
 
-    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None) -> Verdict:
+    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None, still=True) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and
         bias), a new payload
         (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
@@ -253,7 +253,8 @@ class ChangeModel:
         expected: the task announced a load change (the payload's prior odds EXPECTED); held (n,): the level of a
         wrench judged before this one and still acting, if any: a return or a new payload may be a step from it (one
         event: the wrench stays), as well as a step from the reference (the wrench gone with it; for a new payload
-        two events at once, COMPOUND)."""
+        two events at once, COMPOUND); still: the arm was still when that level was held (else only a return is a
+        step from it; the wrench unchanged and a new payload are judged from the reference)."""
         s = self.s
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
@@ -263,14 +264,14 @@ class ChangeModel:
         kept = phi + K @ cho_solve(fV, d, check_finite=False)     #   phi ~ N(phi_hat, cov), seen through d
         kept_cov = self.compensated - K @ cho_solve(fV, K.T, check_finite=False)
         held = None if held is None else np.asarray(held, dtype=float)
-        steps = [(d, 0.0, None)] if held is None else [(d, COMPOUND, None), (d - held, 0.0, held)]
+        steps = [(d, 0.0, None)] if held is None or not still else [(d, COMPOUND, None), (d - held, 0.0, held)]
         log, new, cov, odds, under = max((self._payload(x, Y, V, phi, payloads) + (o, u) for x, o, u in steps),
                                          key=lambda c: c[0] + c[3])
         logs["payload"] = log + odds               # under a held wrench: a step from its level (it goes on), or
         #                                            from the reference (the wrench gone at once: two events)
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
-        if held is not None:
+        if held is not None and still:
             logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
         states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])

@@ -73,6 +73,7 @@ class _Departure:
     level: np.ndarray | None = None       #   and settled at this departure d (n,)
     wrench: bool = False                  # judged a wrench (counted once in RME.changes_not_payload)
     held: np.ndarray | None = None        # the settled level (n,) of a wrench still acting, if any
+    still: bool = False                   #   held with the arm still
     best: str | None = None               # the most probable hypothesis
     best_since: int = 0                   #   and since which sample
     refused: np.ndarray | None = None     # a departure d (n,) not to estimate again (its estimate refused, or made
@@ -348,7 +349,8 @@ class RME:
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
-        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._dep.held)
+        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._dep.held,
+                    still=self._dep.still)
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
@@ -394,7 +396,8 @@ class RME:
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
         if v.best == "wrench":               # acted on (nothing to do) with its level not moving (friction allowed):
-            self._dep.held = v.d             #   held, a step from it may be a return or a payload under the push
+            self._dep.held, self._dep.still = v.d, self._still >= S   # held: a step from it may be a return
+            #                                  under the push (the arm still: or the push unchanged, or a payload)
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
