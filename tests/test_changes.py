@@ -237,11 +237,14 @@ def held_push(rng):
     return J, Y, m, bias, push, m.mean(m.s.short) - m.reference.level
 
 
-def test_a_press_let_go_under_a_push_already_held_is_a_return():
+@pytest.mark.parametrize("still", [True, False])
+def test_a_press_let_go_under_a_push_already_held_is_a_return(still):
     """A sideways push has held the arm at the level J^T w (judged a wrench) while a press was compensated as a 2 kg
     load; the press is let go and the push stays: the step from the held level is the press's reversal alone (one
     event), so the model returns to no payload under it. With the push unchanged (no release) it stays a wrench, also
-    when an earlier payload differs from the compensated one by less than the noise of the held level's drift."""
+    when an earlier payload differs from the compensated one by less than the noise of the held level's drift. The
+    same whether the level was held with the arm still or moving (then the push unchanged is a wrench from the
+    reference)."""
     rng = np.random.default_rng(10)
     phi = np.array([20 / 9.81, 0, 0, 0])
     near = np.array([20 / 9.81 - 0.03, 0, 0, 0])          # an earlier estimate 30 g away
@@ -251,7 +254,7 @@ def test_a_press_let_go_under_a_push_already_held_is_a_return():
             stream(m, rng, [bias + push - (Y @ phi if release else 0)] * 120)
             p = Payloads.plausible(3.0, 0.3)
             p.earlier, p.covs = [near, np.zeros(4)], [np.zeros((4, 4))] * 2
-            v = m.judge(Y, J, phi, np.zeros(N), p, held=held)
+            v = m.judge(Y, J, phi, np.zeros(N), p, held=held, still=still)
             if release:
                 assert v.best == "back" and v.sure > 0.99 and np.allclose(v.phi, 0) and v.under is not None, v
             else:
