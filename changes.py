@@ -245,10 +245,9 @@ class ChangeModel:
 
     def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None, still=True) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and
-        bias), a new payload
-        (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
-        ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free parameter; the best of them),
-        and back to one under a wrench.
+        bias), a new payload (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0,
+        push_force^2), moment ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free
+        parameter; the best of them), and back to one under a wrench.
         Y (n, 4): the payload regressor at q; J (6, n): the flange's world Jacobian; phi (4,): compensated now;
         expected: the task announced a load change (the payload's prior odds EXPECTED); held (n,): the level of a
         wrench judged before this one and still acting, if any: a return or a new payload may be a step from it (one
