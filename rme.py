@@ -395,9 +395,8 @@ class RME:
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
-        if v.best == "wrench":               # acted on (nothing to do) with its level not moving (friction allowed):
-            self._dep.held, self._dep.still = v.d, self._still >= S   # held: a step from it may be a return
-            #                                  under the push (the arm still: or the push unchanged, or a payload)
+        if v.best == "wrench":               # acted on, its level not moving (friction allowed): held, a return may
+            self._dep.held, self._dep.still = v.d, self._still >= S   # step from it (the arm still: a payload too)
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
