@@ -252,8 +252,8 @@ class ChangeModel:
         expected: the task announced a load change (the payload's prior odds EXPECTED); held (n,): the level of a
         wrench judged before this one and still acting, if any: a return or a new payload may be a step from it (one
         event: the wrench stays), as well as a step from the reference (the wrench gone with it; for a new payload
-        two events at once, COMPOUND); still: the arm was still when that level was held (else only a return is a
-        step from it; the wrench unchanged and a new payload are judged from the reference)."""
+        two events at once, COMPOUND); still: the arm was still when that level was held (else a new payload is
+        judged from the reference alone)."""
         s = self.s
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
@@ -270,7 +270,7 @@ class ChangeModel:
         #                                            from the reference (the wrench gone at once: two events)
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
-        if held is not None and still:
+        if held is not None:
             logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
         states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])

@@ -395,8 +395,9 @@ class RME:
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
-        if v.best == "wrench":               # acted on, its level not moving (friction allowed): held, a return may
-            self._dep.held, self._dep.still = v.d, self._still >= S   # step from it (the arm still: a payload too)
+        if v.best == "wrench" and (self._still >= S or not young):   # acted on, not moving (friction allowed),
+            self._dep.held, self._dep.still = v.d, self._still >= S   # and with the arm moving older than patience:
+            #                                  held, a return may step from it (the arm still: a payload too)
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
