@@ -270,8 +270,8 @@ class ChangeModel:
         #                                            from the reference (the wrench gone at once: two events)
         W = np.diag([s.push_force ** 2] * 3 + [(s.push_force * s.push_arm) ** 2] * 3)
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
-        if held is not None:                     # the held one unchanged: d stays at its level (not moving)
-            logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, self.covariance(q, Y, moving=False)))
+        if held is not None:
+            logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
         states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
                   if np.abs(p - phi).max() > 1e-6]
