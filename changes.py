@@ -251,17 +251,17 @@ class ChangeModel:
         u = np.asarray(d) - np.asarray(e)
         return bool(u @ (u / self.variance(q, Y, moving=False, friction=False)) <= self.s.detect)
 
-    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None) -> Verdict:
+    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None, still=True) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and
-        bias), a new payload
-        (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0, push_force^2), moment
-        ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free parameter; the best of them),
-        and back to one under a wrench.
+        bias), a new payload (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0,
+        push_force^2), moment ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free
+        parameter; the best of them), and back to one under a wrench.
         Y (n, 4): the payload regressor at q; J (6, n): the flange's world Jacobian; phi (4,): compensated now;
         expected: the task announced a load change (the payload's prior odds EXPECTED); held (n,): the level of a
         wrench judged before this one and still acting, if any: a return or a new payload may be a step from it (one
         event: the wrench stays), as well as a step from the reference (the wrench gone with it; for a new payload
-        two events at once, COMPOUND)."""
+        two events at once, COMPOUND); still: the arm was still when that level was held (else a new payload is
+        judged from the reference alone)."""
         s = self.s
         d = self.mean(s.short) - self.reference.level
         V = self.covariance(q, Y)
@@ -271,7 +271,7 @@ class ChangeModel:
         kept = phi + K @ cho_solve(fV, d, check_finite=False)     #   phi ~ N(phi_hat, cov), seen through d
         kept_cov = self.compensated - K @ cho_solve(fV, K.T, check_finite=False)
         held = None if held is None else np.asarray(held, dtype=float)
-        steps = [(d, 0.0, None)] if held is None else [(d, COMPOUND, None), (d - held, 0.0, held)]
+        steps = [(d, 0.0, None)] if held is None or not still else [(d, COMPOUND, None), (d - held, 0.0, held)]
         log, new, cov, odds, under = max((self._payload(x, Y, V, phi, payloads) + (o, u) for x, o, u in steps),
                                          key=lambda c: c[0] + c[3])
         logs["payload"] = log + odds               # under a held wrench: a step from its level (it goes on), or

@@ -74,6 +74,7 @@ class _Departure:
     level: np.ndarray | None = None       #   and settled at this departure d (n,)
     wrench: bool = False                  # judged a wrench (counted once in RME.changes_not_payload)
     held: np.ndarray | None = None        # the settled level (n,) of a wrench still acting, if any
+    still: bool = False                   #   held with the arm still
     best: str | None = None               # the most probable hypothesis
     best_since: int = 0                   #   and since which sample
     refused: np.ndarray | None = None     # a departure d (n,) not to estimate again (its estimate refused, or made
@@ -351,12 +352,11 @@ class RME:
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             return
-        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._dep.held)
+        v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._dep.held,
+                    still=self._dep.still)
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        elif v.best == "wrench" and k - self._dep.since >= S and self._still >= S:
-            self._dep.held = v.d                       # a wrench holding the arm still: a return may come under it
         if owed and v.best in ("noise", "payload") and k - self._dep.since >= s.window:
             return self._owed(error)         # (not under a wrench; the level steady over the whole window: the
             #                                  estimate covers what is on the flange now, no change inside it)
@@ -398,6 +398,9 @@ class RME:
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
+        if v.best == "wrench" and (self._still >= S or not young):   # acted on, not moving (friction allowed),
+            self._dep.held, self._dep.still = v.d, self._still >= S   # and with the arm moving older than patience:
+            #                                  held, a return may step from it (the arm still: a payload too)
 
     def _good(self) -> float:
         """A quarter of the tolerance the compensated mass is judged by (10 % or 50 g) [kg]: half the bar a mass is

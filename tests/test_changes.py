@@ -1,6 +1,7 @@
 """changes.ChangeModel on synthetic residuals with a known cause (no MuJoCo): a payload step, a push and its release,
 a press through the flange, a bias drift with the pose, a sensor offset moved by a large pose change, a compensation
-off by its own error; each hypothesis' evidence against a direct evaluation."""
+off by its own error; each hypothesis' evidence against a direct evaluation; RME on a synthetic stream at a Panda pose:
+a removal under a push that moves the arm."""
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
@@ -236,11 +237,14 @@ def held_push(rng):
     return J, Y, m, bias, push, m.mean(m.s.short) - m.reference.level
 
 
-def test_a_press_let_go_under_a_push_already_held_is_a_return():
+@pytest.mark.parametrize("still", [True, False])
+def test_a_press_let_go_under_a_push_already_held_is_a_return(still):
     """A sideways push has held the arm at the level J^T w (judged a wrench) while a press was compensated as a 2 kg
     load; the press is let go and the push stays: the step from the held level is the press's reversal alone (one
     event), so the model returns to no payload under it. With the push unchanged (no release) it stays a wrench, also
-    when an earlier payload differs from the compensated one by less than the noise of the held level's drift."""
+    when an earlier payload differs from the compensated one by less than the noise of the held level's drift. The
+    same whether the level was held with the arm still or moving (then the push unchanged is a wrench from the
+    reference)."""
     rng = np.random.default_rng(10)
     phi = np.array([20 / 9.81, 0, 0, 0])
     near = np.array([20 / 9.81 - 0.03, 0, 0, 0])          # an earlier estimate 30 g away
@@ -250,7 +254,7 @@ def test_a_press_let_go_under_a_push_already_held_is_a_return():
             stream(m, rng, [bias + push - (Y @ phi if release else 0)] * 120)
             p = Payloads.plausible(3.0, 0.3)
             p.earlier, p.covs = [near, np.zeros(4)], [np.zeros((4, 4))] * 2
-            v = m.judge(Y, J, phi, np.zeros(N), p, held=held)
+            v = m.judge(Y, J, phi, np.zeros(N), p, held=held, still=still)
             if release:
                 assert v.best == "back" and v.sure > 0.99 and np.allclose(v.phi, 0) and v.under is not None, v
             else:
@@ -275,6 +279,38 @@ def test_a_payload_hung_on_under_a_push_already_held_is_a_payload_step_from_it()
                 assert v.best == "payload" and v.under is not None and abs(v.phi[0] - phi[0]) < 0.1 * phi[0], v
             else:
                 assert v.best == "wrench", v
+
+
+@pytest.mark.parametrize("removed", [True, False])
+def test_a_removal_under_a_push_moving_the_arm_is_a_return_from_the_push_level(removed):
+    """RME on a synthetic stream at a drawn Panda pose: a load (0.5-2.5 kg) hung on at rest and compensated, then a
+    sideways push (15-35 N) that keeps the arm moving (every joint 0.05-0.3 rad/s) with its level drifting (0.5 Nm/s
+    per joint); 0.5 s into the push the load is removed. The level had stayed where the push put it: the step from it
+    is the load's removal alone, and the compensation is back at no payload within 0.5 s, while the push still acts.
+    Without the removal the load stays compensated through the push."""
+    from dynamics import Robot
+    from nn_train import random_pose
+    from rme import RME
+    from tests.helpers import SYNC
+    robot = Robot.panda()
+    rng = np.random.default_rng(2031 + removed)
+    for _ in range(2):
+        q = random_pose(robot, rng)
+        J = robot.kinematics(q)[2]
+        theta = np.r_[rng.uniform(0.5, 2.5), rng.uniform(-0.05, 0.05, 3)]
+        a = rng.uniform(0, 2 * np.pi)
+        push = J[:3].T @ (rng.uniform(15, 35) * np.array([np.cos(a), np.sin(a), 0.0]))   # tau_ext = J^T F
+        dq, drift = rng.choice([-1, 1], N) * rng.uniform(0.05, 0.3, N), rng.normal(0, 0.5, N)
+        est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0))
+        for k in range(3000):                       # 1 kHz: load at 1 s, push from 2 s, removal at 2.5 s
+            on = 1000 <= k and (k < 2500 or not removed)
+            tau = 0.01 * rng.normal(size=N) + (robot.payload_torque(q, theta) if on else 0.0)
+            moving = k >= 2000
+            est.update(q, dq if moving else np.zeros(N), tau + (push + drift * (k - 2000) / 1000 if moving else 0.0))
+            if k == 1999:
+                assert abs(est.theta[0] - theta[0]) < 0.1 * theta[0], est.theta
+        history = [(round(e.t, 3), e.kind, round(e.mean[0], 3)) for e in est.history]
+        assert (est.theta[0] < 1e-6 if removed else abs(est.theta[0] - theta[0]) < 0.1 * theta[0]), (theta, history)
 
 
 def test_the_model_runs_without_mujoco():
