@@ -371,6 +371,16 @@ class RME:
             return              # undecided; or the level still moves, when only a payload whose mass the data pin
                                 # down (below) or a return the level matches within the noise alone is informed
                                 # by the data rather than by the hypotheses' prior volumes
+        self._act(v, q, Y, young)
+        if v.best == "wrench" and (self._still >= S or not young):   # acted on, not moving (friction allowed),
+            self._dep.held, self._dep.still = v.d, self._still >= S   # and with the arm moving older than patience:
+            #                                  held, a return may step from it (the arm still: a payload too)
+
+    def _act(self, v, q, Y, young: bool):
+        """Act on the verdict v the departure was decided by (docs/streaming.md, "When it acts"): estimate a new
+        payload, return to an earlier one, correct the one held or take the level as the new reference; a wrench is
+        counted and left alone."""
+        m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         if v.best == "payload":
             if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
                 return                       # its mass not yet known to half the compensation's tolerance
@@ -398,9 +408,6 @@ class RME:
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
-        if v.best == "wrench" and (self._still >= S or not young):   # acted on, not moving (friction allowed),
-            self._dep.held, self._dep.still = v.d, self._still >= S   # and with the arm moving older than patience:
-            #                                  held, a return may step from it (the arm still: a payload too)
 
     def _good(self) -> float:
         """A quarter of the tolerance the compensated mass is judged by (10 % or 50 g) [kg]: half the bar a mass is
