@@ -129,7 +129,6 @@ class RME:
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
         self._refine_error = np.inf                    #   and the mass error [kg] motion left in the last window
-        self._refine_full = False                      #   which was a full one, made in motion
         self._quiet = None                             # the sample the level last came to sit at the compensation's
                                                        #   own (None: it does not now)
         self._settled = False                          # it has sat there for `patience` since the compensation took
@@ -337,7 +336,7 @@ class RME:
         the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         error = self._motion_error(Y, J) if self._refine is not None and k - self._refine_from >= s.window else None
-        good = 0.0 if self._refine_full else self._good()   # (after one made in motion: only a halving, or still)
+        good = self._good() if self._refine_error > self._good() else 0.0
         owed = error is not None and (self._still >= s.window or error <= max(good, self._refine_error / 2))
         #   the change on the full window: once the arm is still over it; before, in motion, once motion leaves it
         #   within a quarter of the tolerance, then each time within half of what it left in the last window
@@ -547,7 +546,7 @@ class RME:
         if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
             self._refine = due.level if due.refine else None
             self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
-            self._refine_error, self._refine_full = self._motion_error(Y, J), due.kind == "at rest"
+            self._refine_error = self._motion_error(Y, J)
         if due.kind != "back" and due.departure is not None:
             self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 
