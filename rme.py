@@ -336,10 +336,8 @@ class RME:
         the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         error = self._motion_error(Y, J) if self._refine is not None and k - self._refine_from >= s.window else None
-        good = self._good() if self._refine_error > self._good() else 0.0
-        owed = error is not None and (self._still >= s.window or error <= max(good, self._refine_error / 2))
-        #   the change on the full window: once the arm is still over it; before, in motion, once motion leaves it
-        #   within a quarter of the tolerance, then each time within half of what it left in the last window
+        owed = error is not None and error <= max(self._good(), self._refine_error / 2)   # the change on the full
+        #   window, once motion leaves it within a quarter of the tolerance, or within half of what it left in the last
         moving = m.settling() > s.changes.detect
         departed = m.departure(q, Y) > s.changes.detect
         quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
@@ -347,7 +345,7 @@ class RME:
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
         if not departed:
             if owed and quiet and k - self._quiet >= s.window:   # (what the compensation leaves is its own error,
-                return self._owed()         # over the whole window: no other change, no push, inside it)
+                return self._owed(error)         # over the whole window: no other change, no push, inside it)
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
@@ -360,7 +358,7 @@ class RME:
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
         if owed and v.best in ("noise", "payload") and k - self._dep.since >= s.window:
-            return self._owed()         # (not under a wrench; the level steady over the whole window: the
+            return self._owed(error)         # (not under a wrench; the level steady over the whole window: the
             #                                  estimate covers what is on the flange now, no change inside it)
         if v.best != self._dep.best:
             self._dep.best, self._dep.best_since = v.best, k
@@ -451,15 +449,13 @@ class RME:
         self.history.append(e)
         self._due = _Due(e, self._k, "correction", phi_cov=v.kept_cov, departure=v.d)
 
-    def _owed(self):
+    def _owed(self, error):
         """The estimate on the full window a change first estimated on the short one (or in motion) is owed, against
-        the level before that change, motion's share of its mass error (_motion_error) small or the arm still; made only
+        the level before that change, motion's share of its mass error `error` [kg] (_motion_error) small; made only
         while the level is the compensation's own, noise's or a payload's (not a wrench's holding the arm still), and
-        owed again until it is made on a window over which the arm was still (the bound leaves out the arm's own
-        settling: on the bench's holds the windows it passed in motion read the mass with 2.3 times the still
-        windows' squared error)."""
+        owed again while that share is above a quarter of the tolerance."""
         level, self._refine = self._refine, None
-        return self._estimate_now(self.settings.window, level, "at rest", refine=self._still < self.settings.window)
+        return self._estimate_now(self.settings.window, level, "at rest", refine=error > self._good())
 
     def _algorithm_1(self, q, r, J):
         """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window of tau_ext as it

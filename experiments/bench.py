@@ -48,7 +48,7 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
         ref = TAU[k_change - 30:k_change].mean(axis=0)
         start = k_det - RMESettings().detection_window
         rest = [e for e in hits if e.kind == "at rest"]
-        k_rest = int(round(rest[-1].t / plant.dt)) if rest else len(Q)   # the last: on a window of the arm still
+        k_rest = int(round(rest[0].t / plant.dt)) if rest else len(Q)
         out.append(dict(theta=theta, q=Q[start:start + 300], tau=TAU[start:start + 300] - ref, detected=bool(det),
                         delay=(k_det - k_change) * plant.dt * 1e3, q_rest=Q[k_rest - 300:k_rest],
                         tau_rest=TAU[k_rest - 300:k_rest] - ref, at_rest=bool(rest)))
@@ -57,7 +57,7 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
 
 def mse_table(est, data, length, at_rest=True):
     """MSE per parameter of est.estimate on each dataset's window of `length` samples: the one ending where RME made
-    its last estimate on the full window (at_rest: the arm still over it once it rests) or the one starting where the pipeline's window at the detection starts; and the
+    its estimate at rest (at_rest) or the one starting where the pipeline's window at the detection starts; and the
     wall times."""
     err, secs = [], []
     for d in data:
