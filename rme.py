@@ -335,17 +335,15 @@ class RME:
         """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate on
         the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
-        error = self._motion_error(Y, J) if self._refine is not None and k - self._refine_from >= s.window else None
-        owed = error is not None and error <= max(self._good(), self._refine_error / 2)   # the change on the full
-        #   window, once motion leaves it within a quarter of the tolerance, or within half of what it left in the last
         moving = m.settling() > s.changes.detect
         departed = m.departure(q, Y) > s.changes.detect
         quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
         self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
         if not departed:
-            if owed and quiet and k - self._quiet >= s.window:   # (what the compensation leaves is its own error,
-                return self._owed(error)         # over the whole window: no other change, no push, inside it)
+            if quiet and k - self._quiet >= s.window and (error := self._owed_error(Y, J)) is not None:
+                return self._owed(error)         # (what the compensation leaves is its own error, over the whole
+                #                                  window: no other change, no push, inside it)
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
@@ -357,7 +355,8 @@ class RME:
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        if owed and v.best in ("noise", "payload") and k - self._dep.since >= s.window:
+        if (v.best in ("noise", "payload") and k - self._dep.since >= s.window
+                and (error := self._owed_error(Y, J)) is not None):
             return self._owed(error)         # (not under a wrench; the level steady over the whole window: the
             #                                  estimate covers what is on the flange now, no change inside it)
         if v.best != self._dep.best:
@@ -413,6 +412,15 @@ class RME:
         """A quarter of the tolerance the compensated mass is judged by (10 % or 50 g) [kg]: half the bar a mass is
         acted on at."""
         return max(0.025 * self.theta[0], 0.0125)
+
+    def _owed_error(self, Y, J) -> float | None:
+        """Motion's share of the mass error [kg] (_motion_error) when the full-window estimate a change is owed may be
+        made now: the window past the change, and that share within a quarter of the tolerance or within half of what
+        it left in the last window; else None (computed only where everything else allows the estimate)."""
+        if self._refine is None or self._k - self._refine_from < self.settings.window:
+            return None
+        error = self._motion_error(Y, J)
+        return error if error <= max(self._good(), self._refine_error / 2) else None
 
     def _motion_error(self, Y, J) -> float:
         """The mass error [kg] motion could leave in an estimate on the newest `window` samples, at most: the joints'

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from diagnosis.logs import LogConfig, _interp, _stale_rows, prepare, read_log
+from diagnosis.logs import LogConfig, _interp, _stale_rows, missing_cycles, prepare, read_log
 from dynamics import Robot
 from motion.inertia import rigid_body
 from motion.tool_forms import EE_IN_F, forms, make_tool, params_of_tool, save_tool, tool_of_params
@@ -100,7 +100,7 @@ def prepared(log: dict, fill_stale: bool = False, source: str = "run", notes: di
         gaps = np.flatnonzero(step > 1.5 * dt)
         raw["t"] = t[0] + dt * np.arange(len(t))
         notes.update(gap_intervals=[(float(raw["t"][i]), float(raw["t"][i + 1])) for i in gaps],
-                     cycles_missed=int(np.sum(np.round(step[gaps] / dt) - 1)))
+                     cycles_missed=missing_cycles(t, dt)["missing_cycles"])
     if fill_stale and "tau_cmd" in log and "tau_J" in raw and len(raw["t"]) > 2:
         raw, notes["stale_rows_filled"] = _stale_filled(raw, np.asarray(log["tau_cmd"], dtype=float))
     return prepare(raw, LOG, source=source, notes=notes)
