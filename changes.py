@@ -219,11 +219,17 @@ class ChangeModel:
         s, ref, S = self.s, self.reference, self.s.short
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
-        moved = np.asarray(q) - ref.q                                  # (n,) the pose's change since the reference
-        g = s.model_error * ref.gradient @ moved
-        bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (moved @ moved) / s.bias_length ** 2))   # the offset's
-        #                                                                     change since the reference, per joint
+        g, bias = self.carried(q)
         return 2 * self.noise + fric + moving * moving + bias, g
+
+    def carried(self, q):
+        """What the pose's change since the reference, to q (n,), carries into the level: the robot model's error of
+        the gravity torque's change g (n,) [Nm] (a rank-one direction) and the variance (n,) [Nm^2] of the sensors'
+        pose-dependent offset's change, a Gaussian process of std pose_bias and length bias_length in joint space."""
+        s, ref = self.s, self.reference
+        moved = np.asarray(q) - ref.q                                  # (n,) the pose's change since the reference
+        bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (moved @ moved) / s.bias_length ** 2))
+        return s.model_error * ref.gradient @ moved, bias
 
     def settling(self) -> float:
         """chi^2 of the level's move over the last `short` samples under the noise alone (of two short means, with

@@ -128,7 +128,9 @@ class RME:
         self._dep = _Departure()                       # the departure from the reference under judgement
         self._refine = None                            # the reference level an estimate at rest is owed against
         self._refine_from = 0                          #   and the first sample its window may read (the change's)
-        self._refine_error = np.inf                    #   and the mass error [kg] motion left in the last window
+        self._refine_error = (np.inf, np.inf)          #   and the mass error [kg] the last window could carry
+                                                       #   (motion's, the pose's)
+        self._refined = False                          #   and whether that window was the full one
         self._quiet = None                             # the sample the level last came to sit at the compensation's
                                                        #   own (None: it does not now)
         self._settled = False                          # it has sat there for `patience` since the compensation took
@@ -341,8 +343,8 @@ class RME:
         self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
         if not departed:
-            if quiet and k - self._quiet >= s.window and (error := self._owed_error(Y, J)) is not None:
-                return self._owed(error)         # (what the compensation leaves is its own error, over the whole
+            if quiet and k - self._quiet >= s.window and self._may_refine(Y, J, q):
+                return self._owed()          # (what the compensation leaves is its own error, over the whole
                 #                                  window: no other change, no push, inside it)
             if moving:
                 return                       # on its way somewhere: not yet a departure, not quiet either
@@ -355,9 +357,8 @@ class RME:
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        if (v.best in ("noise", "payload") and k - self._dep.since >= s.window
-                and (error := self._owed_error(Y, J)) is not None):
-            return self._owed(error)         # (not under a wrench; the level steady over the whole window: the
+        if v.best in ("noise", "payload") and k - self._dep.since >= s.window and self._may_refine(Y, J, q):
+            return self._owed()              # (not under a wrench; the level steady over the whole window: the
             #                                  estimate covers what is on the flange now, no change inside it)
         if v.best != self._dep.best:
             self._dep.best, self._dep.best_since = v.best, k
@@ -413,25 +414,42 @@ class RME:
         acted on at."""
         return max(0.025 * self.theta[0], 0.0125)
 
-    def _owed_error(self, Y, J) -> float | None:
-        """Motion's share of the mass error [kg] (_motion_error) when the full-window estimate a change is owed may be
-        made now: the window past the change, and that share within a quarter of the tolerance or within half of what
-        it left in the last window; else None (computed only where everything else allows the estimate)."""
-        if self._refine is None or self._k - self._refine_from < self.settings.window:
-            return None
-        error = self._motion_error(Y, J)
-        return error if error <= max(self._good(), self._refine_error / 2) else None
+    def _may_refine(self, Y, J, q) -> bool:
+        """Whether the full-window estimate a change is owed may be made now (computed only where everything else
+        allows it): the window past the change, and the mass error it could carry (_window_error: motion's share and
+        the pose's) small enough. After a short window: motion's share within a quarter of the tolerance or half of
+        what it left in the last window (both carry the pose's share alike). After a full-window estimate made in
+        motion: in motion, only while that one's motion share was above the quarter, the same, and the error no
+        larger in all; with the arm still over the window, its error at most half that one's, else (what is left is
+        the pose's, which waiting does not shrink) no estimate is owed any more."""
+        W = self.settings.window
+        if self._refine is None or self._k - self._refine_from < W:
+            return False
+        motion, pose = self._window_error(Y, J, q)
+        last_motion, last_pose = self._refine_error
+        if not self._refined:
+            return motion <= max(self._good(), last_motion / 2)
+        if self._still >= W:
+            self._refine = self._refine if motion + pose <= (last_motion + last_pose) / 2 else None
+            return self._refine is not None
+        return (last_motion > self._good() and motion <= max(self._good(), last_motion / 2)
+                and motion + pose <= last_motion + last_pose)
 
-    def _motion_error(self, Y, J) -> float:
-        """The mass error [kg] motion could leave in an estimate on the newest `window` samples, at most: the joints'
-        friction at their mean speeds over it (changes.ChangeModel.friction) and the compensated payload's inertial
-        force m a (a (3,): the flange's mean acceleration over it, J dq differentiated across it), each joint's torque
-        carried into the mass by the least squares of the regressor Y (n, 4) at this pose, signs unknown (summed)."""
+    def _window_error(self, Y, J, q) -> tuple[float, float]:
+        """The mass error [kg] an estimate on the newest `window` samples, referred to the level owed against, could
+        carry, at most: motion's (the joints' friction at their mean speeds over it, changes.ChangeModel.friction,
+        and the compensated payload's inertial force m a, a (3,) the flange's mean acceleration over it, J dq
+        differentiated across it; signs unknown, magnitudes summed) and the pose's (what its change since that
+        level's pose carries: the robot model's error along the gravity torque's change and twice the std of the
+        sensors' pose-dependent offset, changes.ChangeModel.carried), each joint's torque carried into the mass by the
+        least squares of the regressor Y (n, 4) at this pose."""
         W, L = self.settings.window, 20
         dq = self._dq[np.arange(self._k - W, self._k) % len(self._dq)]                 # (W, n)
         a = J[:3] @ (dq[-L:].mean(axis=0) - dq[:L].mean(axis=0)) * self.settings.rate / (W - L)
         e = self.model.friction(np.abs(dq).mean(axis=0)) + np.abs(J[:3].T @ (self.theta[0] * a))
-        return float(np.abs(np.linalg.pinv(Y)[0]) @ e)
+        g, bias = self.model.carried(q)
+        p = np.linalg.pinv(Y)[0]
+        return float(np.abs(p) @ e), float(abs(p @ g) + 2 * math.sqrt(p * p @ bias))
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
@@ -457,13 +475,13 @@ class RME:
         self.history.append(e)
         self._due = _Due(e, self._k, "correction", phi_cov=v.kept_cov, departure=v.d)
 
-    def _owed(self, error):
+    def _owed(self):
         """The estimate on the full window a change first estimated on the short one (or in motion) is owed, against
-        the level before that change, motion's share of its mass error `error` [kg] (_motion_error) small; made only
-        while the level is the compensation's own, noise's or a payload's (not a wrench's holding the arm still), and
-        owed again while that share is above a quarter of the tolerance."""
+        the level before that change (_may_refine says when); made only while the level is the compensation's own,
+        noise's or a payload's (not a wrench's holding the arm still), and owed again while the arm moved in that
+        window (a window of the arm still may do better)."""
         level, self._refine = self._refine, None
-        return self._estimate_now(self.settings.window, level, "at rest", refine=error > self._good())
+        return self._estimate_now(self.settings.window, level, "at rest", refine=self._still < self.settings.window)
 
     def _algorithm_1(self, q, r, J):
         """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window of tau_ext as it
@@ -550,7 +568,8 @@ class RME:
         if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
             self._refine = due.level if due.refine else None
             self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
-            self._refine_error = self._motion_error(Y, J)
+            self._refined = due.kind == "at rest"
+            self._refine_error = self._window_error(Y, J, self._q[(self._k - 1) % len(self._q)])
         if due.kind != "back" and due.departure is not None:
             self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 

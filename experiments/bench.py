@@ -28,7 +28,8 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
     payloads, other seeds), a payload attached at t_change, RME streaming in the loop: the windows the pipeline
     itself uses. Each: dict(theta (4,), q, tau (L, 7) referred to the 30 samples before the change for the windows
     of L = 50, 100, 200, 300 ms starting where the pipeline's window at the detection starts (its last
-    RMESettings().detection_window samples), detected (bool), delay [ms]). calibration: RME's error model
+    RMESettings().detection_window samples), q_rest, tau_rest for the 300 samples ending at its last full-window
+    estimate (the one it keeps), at_rest (bool), detected (bool), delay [ms]). calibration: RME's error model
     (error_model.as_error_model)."""
     rng, cfg, out = np.random.default_rng(seed), DataConfig(), []
     lo, hi = np.array([cfg.m_range[0], *cfg.r_low]), np.array([cfg.m_range[1], *cfg.r_high])
@@ -48,7 +49,7 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
         ref = TAU[k_change - 30:k_change].mean(axis=0)
         start = k_det - RMESettings().detection_window
         rest = [e for e in hits if e.kind == "at rest"]
-        k_rest = int(round(rest[0].t / plant.dt)) if rest else len(Q)
+        k_rest = int(round(rest[-1].t / plant.dt)) if rest else len(Q)   # the last: the estimate kept
         out.append(dict(theta=theta, q=Q[start:start + 300], tau=TAU[start:start + 300] - ref, detected=bool(det),
                         delay=(k_det - k_change) * plant.dt * 1e3, q_rest=Q[k_rest - 300:k_rest],
                         tau_rest=TAU[k_rest - 300:k_rest] - ref, at_rest=bool(rest)))
@@ -57,8 +58,8 @@ def datasets(count, seed, t_change=0.6, seconds=3.0, calibration=None):
 
 def mse_table(est, data, length, at_rest=True):
     """MSE per parameter of est.estimate on each dataset's window of `length` samples: the one ending where RME made
-    its estimate at rest (at_rest) or the one starting where the pipeline's window at the detection starts; and the
-    wall times."""
+    the last of its full-window estimates, the one it keeps (at_rest), or the one starting where the pipeline's
+    window at the detection starts; and the wall times."""
     err, secs = [], []
     for d in data:
         q, tau = (d["q_rest"][-length:], d["tau_rest"][-length:]) if at_rest else (d["q"][:length], d["tau"][:length])
