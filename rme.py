@@ -569,7 +569,8 @@ class RME:
             self._refine = due.level if due.refine else None
             self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
             self._refined = due.kind == "at rest"
-            self._refine_error = self._window_error(Y, J, self._q[(self._k - 1) % len(self._q)])
+            self._refine_error = (np.inf, np.inf) if self._refine is None else \
+                self._window_error(Y, J, self._q[(self._k - 1) % len(self._q)])
         if due.kind != "back" and due.departure is not None:
             self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 
