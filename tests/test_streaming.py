@@ -154,26 +154,37 @@ def test_a_payload_becomes_a_state_to_return_to_once_its_level_held(held):
     assert any(within(m, 0.8) for m in kept) == (held > 1.0), (kept, [(e.t, e.kind) for e in est.history])
 
 
+def _creeping_hold(draws, samples, friction, stop=None):
+    """A synthetic stream at the ready pose: m of 0.5-2.5 kg (its CoM within 8 cm; drawn from `draws`) hung on at
+    sample 1000 as the joints start creeping at 0.2-0.3 rad/s (random signs), slowing with a time constant of 0.7 s,
+    until sample `stop` (None: never), tau_ext holding `friction` x the friction changes.py's model says; RME (no
+    network, estimates on their sample) fed `samples` samples. Returns (m, the estimator, its mass per sample)."""
+    robot = Robot.panda()
+    model = RME(robot, weights=None).model
+    m, r = draws.uniform(0.5, 2.5), draws.uniform(-0.08, 0.08, 3)
+    speed, sign = draws.uniform(0.2, 0.3, 7), draws.choice([-1.0, 1.0], 7)
+    est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0))
+    noise = np.random.default_rng(1)
+    load = robot.payload_torque(Q_READY, np.array([m, *r]))
+    masses = []
+    for k in range(samples):
+        moving = 1000 <= k and (stop is None or k < stop)
+        dq = sign * speed * np.exp(-(k - 1000) / 700.0) if moving else np.zeros(7)
+        tau = np.zeros(7) if k < 1000 else load + friction * sign * model.friction(np.abs(dq))
+        est.update(Q_READY, dq, tau + 0.01 * noise.normal(size=7))
+        masses.append(est.theta[0])
+    return m, est, masses
+
+
 @pytest.mark.slow
 def test_a_load_hung_on_a_creeping_arm_is_right_before_the_arm_comes_to_rest():
     """Synthetic stream at the ready pose: the joints creep at 0.2-0.3 rad/s, slowing with a time constant of 0.7 s
     (still, below rest_speed, only about 2.3 s later), and tau_ext holds 1.5 x the friction changes.py's model says
     (random signs: the harsh plant's); 0.5-2.5 kg hung on as the creep starts. The mass is right, and stays right,
     within 0.7 s: the full window is estimated again as motion's share of its error shrinks, not only at rest."""
-    robot, draws = Robot.panda(), np.random.default_rng(2032)
-    model = RME(robot, weights=None).model
+    draws = np.random.default_rng(2032)
     for _ in range(4):
-        m, r = draws.uniform(0.5, 2.5), draws.uniform(-0.08, 0.08, 3)
-        speed, sign = draws.uniform(0.2, 0.3, 7), draws.choice([-1.0, 1.0], 7)
-        est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0))
-        noise = np.random.default_rng(1)
-        load = robot.payload_torque(Q_READY, np.array([m, *r]))
-        masses = []
-        for k in range(3500):
-            dq = sign * speed * np.exp(-(k - 1000) / 700.0) if k >= 1000 else np.zeros(7)
-            tau = np.zeros(7) if k < 1000 else load + 1.5 * sign * model.friction(np.abs(dq))
-            est.update(Q_READY, dq, tau + 0.01 * noise.normal(size=7))
-            masses.append(est.theta[0])
+        m, est, masses = _creeping_hold(draws, 3500, friction=1.5)
         assert all(within(x, m) for x in masses[1700:]), [(e.t, e.kind, e.mean.round(3).tolist())
                                                            for e in est.history]
 
@@ -184,18 +195,9 @@ def test_an_estimate_made_in_motion_is_made_again_once_the_arm_is_still():
     with a time constant of 0.7 s, tau_ext holding the friction changes.py's model says (random signs); the joints
     stop 1.6 s after the load. The full window is estimated in motion, friction in it; once the arm has been still for
     a full window it is estimated there without it: the mass kept is within 0.5 % (the noise's share is grams)."""
-    robot, draws = Robot.panda(), np.random.default_rng(2033)
-    model = RME(robot, weights=None).model
+    draws = np.random.default_rng(2033)
     for _ in range(4):
-        m, r = draws.uniform(0.5, 2.5), draws.uniform(-0.08, 0.08, 3)
-        speed, sign = draws.uniform(0.2, 0.3, 7), draws.choice([-1.0, 1.0], 7)
-        est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0))
-        noise = np.random.default_rng(1)
-        load = robot.payload_torque(Q_READY, np.array([m, *r]))
-        for k in range(3200):
-            dq = sign * speed * np.exp(-(k - 1000) / 700.0) if 1000 <= k < 2600 else np.zeros(7)
-            tau = np.zeros(7) if k < 1000 else load + sign * model.friction(np.abs(dq))
-            est.update(Q_READY, dq, tau + 0.01 * noise.normal(size=7))
+        m, est, _ = _creeping_hold(draws, 3200, friction=1.0, stop=2600)
         kinds = [(e.t, e.kind, e.mean.round(3).tolist()) for e in est.history]
         assert any(kind == "at rest" and t < 2.6 for t, kind, _ in kinds), kinds
         assert abs(est.theta[0] - m) <= 0.005 * m, (m, kinds)
