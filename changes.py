@@ -156,6 +156,7 @@ class ChangeModel:
         self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
         self.reference: Reference | None = None
         self.compensated = np.zeros((4, 4))                                      # the covariance of phi_hat
+        self.inertial = np.zeros(n)        # the variance (n,) [Nm^2] of the compensated payload's inertial force now
 
     # --- the stream ------------------------------------------------------------------------------
     def push(self, r, dq):
@@ -220,7 +221,7 @@ class ChangeModel:
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
         g, bias = self.carried(q)
-        return 2 * self.noise + fric + moving * moving + bias, g
+        return 2 * self.noise + fric + moving * moving + bias + self.inertial, g
 
     def carried(self, q):
         """What the pose's change since the reference, to q (n,), carries into the level: the robot model's error of
@@ -231,12 +232,25 @@ class ChangeModel:
         bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (moved @ moved) / s.bias_length ** 2))
         return s.model_error * ref.gradient @ moved, bias
 
-    def settling(self) -> float:
+    def mass_variance(self, q, Y, prior_std, fresh: bool = False) -> float:
+        """The variance [kg^2] of a new payload's mass seen through the level's departure at q (n,) (Y (n, 4) the
+        payload regressor there, prior_std (4,) the payload prior's), against the reference held or (fresh) against
+        one taken now: the pose's carried error and the reference's friction replaced by the friction now."""
+        own, g = self._parts(q, moving=False, friction=True)
+        if fresh:
+            f = self.friction(self.mean(self.s.short, of=self._v)) ** 2
+            own, g = 2 * self.noise + 2 * f, 0.0 * g
+        v = own + g * g + np.einsum("ij,jk,ik->i", Y, self.compensated, Y)
+        info = Y.T @ (Y / v[:, None]) + np.diag(1.0 / np.asarray(prior_std, dtype=float) ** 2)
+        return float(np.linalg.inv(info)[0, 0])
+
+    def settling(self, friction: bool = True) -> float:
         """chi^2 of the level's move over the last `short` samples under the noise alone (of two short means, with
-        friction): above settings.detect, the level is still on its way (a change, the arm swinging)."""
+        friction unless told not): above settings.detect, the level is still on its way (a change, the arm
+        swinging); without friction's allowance, also while the arm's speed changes (friction and inertia with it)."""
         S = self.s.short
         u = self.mean(S) - self.mean(S, S)
-        f = self.friction(self.mean(2 * S, of=self._v))
+        f = self.friction(self.mean(2 * S, of=self._v)) if friction else 0.0
         return float(u @ (u / (2 * self.noise + 2 * f * f)))
 
     def departure(self, q, Y=None) -> float:

@@ -337,6 +337,7 @@ class RME:
         """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate on
         the full window a change first estimated on the short one (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
+        m.inertial = self._inertial(J)
         moving = m.settling() > s.changes.detect
         departed = m.departure(q, Y) > s.changes.detect
         quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
@@ -351,6 +352,14 @@ class RME:
             self._dep = _Departure()
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
+            elif self._refine is None and quiet and k - max(self._quiet, m.reference.k) >= s.changes.patience * \
+                    s.rate and m.settling(friction=False) <= s.changes.detect and \
+                    m.mass_variance(q, Y, self.payloads.std, fresh=True) < m.mass_variance(q, Y, self.payloads.std):
+                m.set_reference(q, self._gradient(q))   # an arm moving on: a level quiet for `patience` (nothing
+                #                                  changed that waiting would still show) and as steady as at rest
+                #                                  (no speed change's friction or inertia on its way out of it),
+                #                                  taken here with its friction, sees a new payload's mass better
+                #                                  than the one the pose has left behind
             return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=k < self._expected, held=self._dep.held,
                     still=self._dep.still)
@@ -408,6 +417,16 @@ class RME:
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
+
+    def _inertial(self, J) -> np.ndarray:
+        """The variance (n,) [Nm^2] of the compensated payload's inertial force in the level: m a through J_v^T, a
+        (3,) the flange's mean acceleration over the last `short` samples (J dq differentiated across them); the
+        payload regressor holds the weight alone."""
+        S = self.settings.changes.short
+        h = S // 4
+        dq = self._dq[np.arange(self._k - S, self._k) % len(self._dq)]
+        a = J[:3] @ (dq[-h:].mean(axis=0) - dq[:h].mean(axis=0)) * self.settings.rate / (S - h)
+        return (J[:3].T @ (self.theta[0] * a)) ** 2
 
     def _good(self) -> float:
         """A quarter of the tolerance the compensated mass is judged by (10 % or 50 g) [kg]: half the bar a mass is

@@ -1,5 +1,5 @@
 """What several test files share: the repository's folder, RME streaming on the simulated plant held by CPIC
-(hold, SYNC, SyncRME), the mass tolerance, a 3-joint planar arm's MJCF."""
+(hold, SYNC, SyncRME), the mass tolerance, a sensor offset drawn over the poses, a 3-joint planar arm's MJCF."""
 import os
 
 import numpy as np
@@ -29,6 +29,15 @@ class SyncRME(RME):
 
     def __init__(self, robot, rng=None):
         super().__init__(robot, settings=SYNC, rng=rng)
+
+
+def sensor_bias(rng, sigma, length, features=400, n=7):
+    """A pose-dependent sensor offset b(q) (n,) [Nm] of an n-joint arm drawn from a Gaussian process of std sigma
+    (n,) and squared-exponential length `length` [rad] in joint space, by random Fourier features (Rahimi and Recht
+    2007): an independent construction of the covariance the model assumes."""
+    w = rng.normal(0, 1 / length, (n, features, n))
+    phase = rng.uniform(0, 2 * np.pi, (n, features))
+    return lambda q: np.asarray(sigma) * np.sqrt(2 / features) * np.cos(w @ q + phase).sum(axis=1)
 
 
 def within(m_hat, m):

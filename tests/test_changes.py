@@ -7,6 +7,7 @@ import pytest
 from scipy.stats import multivariate_normal
 
 from changes import ChangeModel, ChangeSettings, Payloads, gaussian_log_pdf
+from tests.helpers import sensor_bias
 
 G = np.array([0.0, 0.0, -9.81])
 N = 7
@@ -107,15 +108,6 @@ def test_a_bias_drift_along_the_pose_is_noise():
         dq = rng.normal(0, 0.05, N)
         stream(m, rng, [bias + 0.5 * s.model_error * grad @ dq] * 120)
         assert m.judge(Y, J, np.zeros(4), dq, Payloads.plausible(3.0, 0.3)).best == "noise"
-
-
-def sensor_bias(rng, sigma, length, features=400):
-    """A pose-dependent sensor offset b(q) (n,) [Nm] drawn from a Gaussian process of std sigma (n,) and squared-
-    exponential length `length` [rad] in joint space, by random Fourier features (Rahimi and Recht 2007): an
-    independent construction of the covariance the model assumes."""
-    w = rng.normal(0, 1 / length, (N, features, N))
-    phase = rng.uniform(0, 2 * np.pi, (N, features))
-    return lambda q: np.asarray(sigma) * np.sqrt(2 / features) * np.cos(w @ q + phase).sum(axis=1)
 
 
 @pytest.mark.parametrize("with_bias", [True, False])
