@@ -334,8 +334,9 @@ class RME:
         self._decided(e, due.level, due.kind, due.refine, due.asked, due.departure)
 
     def _step(self, q, Y, J):
-        """Every 5th sample: judge a departure from the reference, learn the noise at rest, or make the estimate on
-        the full window a change first estimated on the short one (or in motion) is owed."""
+        """Every 5th sample: judge a departure from the reference, learn the noise at rest, take the reference again
+        on an arm that moves on, or make the estimate on the full window a change first estimated on the short one
+        (or in motion) is owed."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         m.inertial = self._inertial(J)
         moving = m.settling() > s.changes.detect
