@@ -232,17 +232,17 @@ class ChangeModel:
         bias = self.pose_bias ** 2 * (2.0 * -math.expm1(-0.5 * (moved @ moved) / s.bias_length ** 2))
         return s.model_error * ref.gradient @ moved, bias
 
-    def mass_variance(self, q, Y, prior_std, fresh: bool = False) -> float:
-        """The variance [kg^2] of a new payload's mass seen through the level's departure at q (n,) (Y (n, 4) the
-        payload regressor there, prior_std (4,) the payload prior's), against the reference held or (fresh) against
-        one taken now: the pose's carried error and the reference's friction replaced by the friction now."""
+    def sees_better_here(self, q, Y, prior_std) -> bool:
+        """Whether a reference taken now would show a new payload's mass better than the one held: the posterior
+        variance [kg^2] of its mass seen through the level's departure at q (n,) (Y (n, 4) the payload regressor
+        there, prior_std (4,) the payload prior's) is smaller with the pose's carried error and the reference's
+        friction replaced by the friction now."""
         own, g = self._parts(q, moving=False, friction=True)
-        if fresh:
-            f = self.friction(self.mean(self.s.short, of=self._v)) ** 2
-            own, g = 2 * self.noise + 2 * f, 0.0 * g
-        v = own + g * g + np.einsum("ij,jk,ik->i", Y, self.compensated, Y)
-        info = Y.T @ (Y / v[:, None]) + np.diag(1.0 / np.asarray(prior_std, dtype=float) ** 2)
-        return float(np.linalg.inv(info)[0, 0])
+        f = self.friction(self.mean(self.s.short, of=self._v)) ** 2
+        comp, P = np.einsum("ij,jk,ik->i", Y, self.compensated, Y), np.diag(1.0 / np.asarray(prior_std) ** 2)
+        held, fresh = (float(np.linalg.inv(Y.T @ (Y / (v + comp)[:, None]) + P)[0, 0])
+                       for v in (own + g * g, 2 * self.noise + 2 * f))
+        return fresh < held
 
     def settling(self, friction: bool = True) -> float:
         """chi^2 of the level's move over the last `short` samples under the noise alone (of two short means, with

@@ -355,7 +355,7 @@ class RME:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
             elif self._refine is None and quiet and k - max(self._quiet, m.reference.k) >= s.changes.patience * \
                     s.rate and m.settling(friction=False) <= s.changes.detect and \
-                    m.mass_variance(q, Y, self.payloads.std, fresh=True) < m.mass_variance(q, Y, self.payloads.std):
+                    m.sees_better_here(q, Y, self.payloads.std):
                 m.set_reference(q, self._gradient(q))   # an arm moving on: a level quiet for `patience` (nothing
                 #                                  changed that waiting would still show) and as steady as at rest
                 #                                  (no speed change's friction or inertia on its way out of it),
@@ -420,14 +420,19 @@ class RME:
             self.changes_not_payload, self._dep.wrench = self.changes_not_payload + 1, True
 
     def _inertial(self, J) -> np.ndarray:
-        """The variance (n,) [Nm^2] of the compensated payload's inertial force in the level: m a through J_v^T, a
-        (3,) the flange's mean acceleration over the last `short` samples (J dq differentiated across them); the
-        payload regressor holds the weight alone."""
+        """The variance (n,) [Nm^2] of the compensated payload's inertial force in the level over the last `short`
+        samples (the payload regressor holds the weight alone); zeros with nothing compensated."""
         S = self.settings.changes.short
-        h = S // 4
-        dq = self._dq[np.arange(self._k - S, self._k) % len(self._dq)]
-        a = J[:3] @ (dq[-h:].mean(axis=0) - dq[:h].mean(axis=0)) * self.settings.rate / (S - h)
-        return (J[:3].T @ (self.theta[0] * a)) ** 2
+        if self.theta[0] == 0.0:
+            return np.zeros(self.robot.n)
+        return self._inertial_force(J, self._dq[np.arange(self._k - S, self._k) % len(self._dq)], S // 4) ** 2
+
+    def _inertial_force(self, J, dq, L) -> np.ndarray:
+        """The joint torques (n,) of the compensated payload's inertial force m a through J_v^T over a window dq
+        (W, n): a (3,) the flange's mean acceleration across it, J (mean dq of its last L samples less that of its
+        first L) over their span."""
+        a = J[:3] @ (dq[-L:].mean(axis=0) - dq[:L].mean(axis=0)) * self.settings.rate / (len(dq) - L)
+        return J[:3].T @ (self.theta[0] * a)
 
     def _good(self) -> float:
         """A quarter of the tolerance the compensated mass is judged by (10 % or 50 g) [kg]: half the bar a mass is
@@ -463,10 +468,9 @@ class RME:
         level's pose carries: the robot model's error along the gravity torque's change and twice the std of the
         sensors' pose-dependent offset, changes.ChangeModel.carried), each joint's torque carried into the mass by the
         least squares of the regressor Y (n, 4) at this pose."""
-        W, L = self.settings.window, 20
+        W = self.settings.window
         dq = self._dq[np.arange(self._k - W, self._k) % len(self._dq)]                 # (W, n)
-        a = J[:3] @ (dq[-L:].mean(axis=0) - dq[:L].mean(axis=0)) * self.settings.rate / (W - L)
-        e = self.model.friction(np.abs(dq).mean(axis=0)) + np.abs(J[:3].T @ (self.theta[0] * a))
+        e = self.model.friction(np.abs(dq).mean(axis=0)) + np.abs(self._inertial_force(J, dq, 20))
         g, bias = self.model.carried(q)
         p = np.linalg.pinv(Y)[0]
         return float(np.abs(p) @ e), float(abs(p @ g) + 2 * math.sqrt(p * p @ bias))
