@@ -68,6 +68,8 @@ class Reference:
     friction: np.ndarray
     gradient: np.ndarray
     k: int = 0                     # samples seen when it was taken (the mean of the 2 short before)
+    held: np.ndarray = field(default_factory=lambda: np.zeros((4, 4)))   # the covariance (4, 4) of the compensated
+    #                                payload's error e then (ChangeModel.error): the level holds -Y(q) e of it
 
 
 @dataclass
@@ -155,7 +157,9 @@ class ChangeModel:
         self._r, self._v, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, |dq|; samples
         self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
         self.reference: Reference | None = None
-        self.compensated = np.zeros((4, 4))                                      # the covariance of phi_hat
+        self.compensated = np.zeros((4, 4))       # the covariance of phi_hat's error that the level's departure
+        #                                           from the reference shows (against the error the reference holds)
+        self.error = np.zeros((4, 4))             # the covariance of phi_hat's error against the true payload
         self.inertial = np.zeros(n)        # the variance (n,) [Nm^2] of the compensated payload's inertial force now
 
     # --- the stream ------------------------------------------------------------------------------
@@ -185,7 +189,7 @@ class ChangeModel:
         """At rest with nothing changing: the spread of consecutive short means updates the noise (Nm^2, n), and the
         reference level follows the bias's slow drift (the level of the last 2 short samples, the pose kept)."""
         S = self.s.short
-        self.reference.level, self.reference.k = self.mean(2 * S), self._k
+        self.reference.level, self.reference.k, self.reference.held = self.mean(2 * S), self._k, self.error.copy()
         self.reference.friction = self.friction(self.mean(S, of=self._v))
         u = self.mean(S) - self.mean(S, S)
         floor = np.array(self.s.rest_noise[:self.n]) ** 2 / 4
@@ -195,7 +199,7 @@ class ChangeModel:
         """The level of the last 2 short samples, at pose q (n,), becomes the reference (gradient (n, n): dG/dq)."""
         S = self.s.short
         self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.mean(S, of=self._v)),
-                                   np.array(gradient, dtype=float), self._k)
+                                   np.array(gradient, dtype=float), self._k, self.error.copy())
 
     def covariance(self, q, Y=None, moving=True, friction=True) -> np.ndarray:
         """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
@@ -300,8 +304,9 @@ class ChangeModel:
         logs["wrench"] = gaussian_log_pdf(d, J.T @ W @ J + V)        # a new wrench, or the held one unchanged
         if held is not None:
             logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
-        C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own spread
-        states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
+        C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own error
+        own = self.reference.held                                      #   against the one the reference holds
+        states = [(p, c + own) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
                   if np.abs(p - phi).max() > 1e-6]
         backs = []                                                     # from the reference, and from a held wrench
         for p, c in states:

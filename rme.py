@@ -462,18 +462,30 @@ class RME:
 
     def _window_error(self, Y, J, q) -> tuple[float, float]:
         """The mass error [kg] an estimate on the newest `window` samples, referred to the level owed against, could
-        carry, at most: motion's (the joints' friction at their mean speeds over it, changes.ChangeModel.friction,
-        and the compensated payload's inertial force m a, a (3,) the flange's mean acceleration over it, J dq
-        differentiated across it; signs unknown, magnitudes summed) and the pose's (what its change since that
-        level's pose carries: the robot model's error along the gravity torque's change and twice the std of the
-        sensors' pose-dependent offset, changes.ChangeModel.carried), each joint's torque carried into the mass by the
-        least squares of the regressor Y (n, 4) at this pose."""
-        W = self.settings.window
-        dq = self._dq[np.arange(self._k - W, self._k) % len(self._dq)]                 # (W, n)
-        e = self.model.friction(np.abs(dq).mean(axis=0)) + np.abs(self._inertial_force(J, dq, 20))
-        g, bias = self.model.carried(q)
+        carry, at most (_carried's torques, signs unknown, magnitudes summed): motion's and the level's (what the
+        pose's change since that level's pose carries, twice the offset's std, and that level's own friction), each
+        joint's torque carried into the mass by the least squares of the regressor Y (n, 4) at this pose."""
+        motion, friction, g, bias = self._carried(J, q, self.settings.window)
         p = np.linalg.pinv(Y)[0]
-        return float(np.abs(p) @ e), float(abs(p @ g) + 2 * math.sqrt(p * p @ bias))
+        return float(np.abs(p) @ motion), float(abs(p @ g) + 2 * math.sqrt(p * p @ bias) + np.abs(p) @ friction)
+
+    def _carried(self, J, q, W):
+        """What a window of the newest W samples, referred to the reference level, holds besides the payload, per
+        joint [Nm]: motion's torque (n,) (the joints' friction at their mean speeds over it,
+        changes.ChangeModel.friction, and the compensated payload's inertial force m a, a (3,) the flange's mean
+        acceleration over it, J dq differentiated across it), the level's friction std (n,), and the pose's change
+        since the level's pose (changes.ChangeModel.carried: the robot model's error g (n,) along the gravity
+        torque's change, the variance (n,) [Nm^2] of the sensors' pose-dependent offset)."""
+        dq = self._dq[np.arange(self._k - W, self._k) % len(self._dq)]                 # (W, n)
+        motion = self.model.friction(np.abs(dq).mean(axis=0)) + np.abs(self._inertial_force(J, dq, min(20, W // 4)))
+        return (motion, self.model.reference.friction) + self.model.carried(q)
+
+    def _carried_cov(self, Y, J, q, W) -> np.ndarray:
+        """The covariance (4, 4) of the error in phi an estimate of the newest W samples carries from _carried (each
+        part a std, signs unknown) through the least squares of Y (n, 4)."""
+        motion, friction, g, bias = self._carried(J, q, W)
+        P = np.linalg.pinv(Y)
+        return (P * (motion ** 2 + friction ** 2 + bias)) @ P.T + np.outer(P @ g, P @ g)
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
@@ -578,10 +590,16 @@ class RME:
             due.level = self.payloads.forget(phi)            # estimate at rest owed again, if it was owed then
             due.refine = due.level is not None
         elif due.kind not in ("at rest", "correction") and self._settled:
-            self.payloads.remember(self._phi, self.model.compensated, self._refine)   # a state whose level settled
+            self.payloads.remember(self._phi, self.model.error, self._refine)   # a state whose level settled
         if due.kind != "at rest":            # (not an estimate in motion the next corrected; one made again at rest
             self._settled, self._quiet = False, None                      #   is the same state refined)
-        self.model.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov
+        m = self.model                       # its error: a window's, referred to the reference level, holds that
+        held = np.zeros((4, 4)) if m.reference is None else m.reference.held   # level's error too; an earlier
+        m.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov   # payload's is
+        m.error = m.compensated - held if due.kind == "back" else m.compensated + held   # its own (judge adds held)
+        if due.kind in ("detection", "at rest") and m.reference is not None:   # and what its window carried
+            m.error = m.error + self._carried_cov(Y, J, self._q[(self._k - 1) % len(self._q)],
+                                                  s.detection_window if due.kind == "detection" else s.window)
         d = Y @ (phi - self._phi)                                      # the change of tau_mm at this pose
         self.theta, self._phi = theta, phi
         self.model.shift(d)
