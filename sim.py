@@ -14,6 +14,8 @@ import checks
 from dynamics import PANDA_XML, Q_READY, MomentumObserver, Robot, as_states, inertia_matrix
 
 N = 7
+PRESETS = ("realistic", "harsh", "noisy", "sticky", "slow-sensor")   # drawn plants (PlantConfig.preset), in the
+#                                                                      order the benchmarks key their seeds by
 BIG, SMALL = 4, 3                                 # joints 1-4 and 5-7 (panda_facts.md)
 
 
@@ -76,14 +78,23 @@ class PlantConfig:
 
     @staticmethod
     def preset(name: str, rng: np.random.Generator | None = None) -> "PlantConfig":
-        """'ideal', 'realistic' or 'harsh' (the last two drawn from rng): the presets the demos and benchmarks offer."""
+        """'ideal', or one drawn from rng: 'realistic', 'harsh', or the realistic plant with one part stressed,
+        'noisy' (3 x its torque noise, 2 x its pose offset), 'sticky' (2 x Gaz friction) or 'slow-sensor' (a
+        momentum observer of 25 1/s): the presets the demos and benchmarks offer."""
         if name == "ideal":
             return PlantConfig.ideal()
+        if name not in PRESETS:
+            raise ValueError(f"preset: expected one of {('ideal',) + PRESETS}, found {name!r}")
+        if rng is None:
+            raise ValueError(f"rng: the {name} preset draws its link errors from a np.random.Generator, found None")
         if name in ("realistic", "harsh"):
-            if rng is None:
-                raise ValueError(f"rng: the {name} preset draws its link errors from a np.random.Generator, found None")
             return getattr(PlantConfig, name)(rng)
-        raise ValueError(f"preset: expected 'ideal', 'realistic' or 'harsh', found {name!r}")
+        c = PlantConfig.realistic(rng)
+        p1, p2, p3 = c.friction_sigmoid
+        return {"noisy": lambda: dataclasses.replace(c, tau_noise=tuple(3.0 * x for x in c.tau_noise),
+                                                     bias_amp=tuple(2.0 * x for x in c.bias_amp)),
+                "sticky": lambda: dataclasses.replace(c, friction_sigmoid=(tuple(2.0 * x for x in p1), p2, p3)),
+                "slow-sensor": lambda: dataclasses.replace(c, observer_gain=25.0)}[name]()
 
     @staticmethod
     def realistic(rng: np.random.Generator) -> "PlantConfig":

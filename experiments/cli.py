@@ -7,6 +7,7 @@ import json
 import sys
 
 import checks
+from sim import PRESETS
 
 SEEDS = "0..4294967295"                                # NumPy's 32-bit seed range (any seed >= 0 works; kept printable)
 
@@ -70,7 +71,7 @@ FLAGS = {
                                       "judged on the ones before")),
     "split": (("--split",), dict(default="tuning", choices=("tuning", "test"),
                                  help="episode seeds: tuning (default) or test (only to judge a finished estimator)")),
-    "plant": (("--plant",), dict(default="realistic", choices=("realistic", "harsh"), help="plant and sensors")),
+    "plant": (("--plant",), dict(default="realistic", choices=PRESETS, help="plant and sensors")),
     "jobs": (("--jobs",), dict(type=checks.argument("1..64"), default=1, help="worker processes, 1..64")),
     "estimator": (("--estimator",), dict(metavar="MODULE:CLASS", default="rme:RME",
                                          help="the estimator, built as CLASS(robot, rng=...) (default rme:RME)")),

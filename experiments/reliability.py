@@ -14,12 +14,12 @@ from cpic import CPIC, Attractor
 from error_model import as_error_model
 from experiments.runner import PayloadChange, Push, run
 from nn_train import DataConfig, random_pose
-from sim import Plant, PlantConfig
+from sim import PRESETS, Plant, PlantConfig
 
 TAU_MAX = np.array([87.0] * 4 + [12.0] * 3)        # Nm, Panda torque limits (panda_facts.md)
 ENTROPY = 0x5EED_2026_AB1E                          # fixed root of every episode's seed (any constant will do)
 SPLITS = ("tuning", "test")                         # the test split is for judging a finished estimator only
-PLANTS = ("realistic", "harsh")
+PLANTS = PRESETS
 KINDS = ("load", "push")                            # load episodes (changes and pushes) and push-only episodes
 FLANGE = (0.0, 0.0, 0.107)                          # m, the flange in link7's frame: where pushes are applied
 

@@ -1,5 +1,7 @@
-"""The reliability benchmark (experiments/reliability.py): the harsh plant as stated, disjoint and reproducible seed
-streams, worker processes that change nothing, and each score on hand-made traces whose answer is known."""
+"""The reliability benchmark (experiments/reliability.py): the harsh and stressed plants as stated, disjoint and
+reproducible seed streams, worker processes that change nothing, and each score on hand-made traces whose answer is
+known."""
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -10,7 +12,7 @@ from cpic import CPIC, Attractor
 from dynamics import Q_READY, Robot
 from experiments.reliability import (ReliabilityConfig, draw_episode, episode_seed, reliability, score, summarise)
 from experiments.runner import run
-from sim import GAZ_P1, Plant, PlantConfig
+from sim import GAZ_P1, PRESETS, Plant, PlantConfig
 
 
 def test_the_harsh_plant_differs_from_the_realistic_one_as_stated_and_runs():
@@ -39,9 +41,28 @@ def test_the_harsh_plant_differs_from_the_realistic_one_as_stated_and_runs():
     assert np.all(np.isfinite(rec.tau_ext)) and rec.ee_error.max() < 0.02   # CPIC holds it within 2 cm
 
 
+def test_each_stressed_plant_is_the_realistic_one_with_one_part_changed_as_stated():
+    rng = lambda: np.random.default_rng(12)
+    real = PlantConfig.realistic(rng())
+    changed = {"noisy": ("tau_noise", "bias_amp"), "sticky": ("friction_sigmoid",), "slow-sensor": ("observer_gain",)}
+    for name, fields in changed.items():
+        c = PlantConfig.preset(name, rng())
+        for f in dataclasses.fields(PlantConfig):
+            if f.name not in fields:
+                assert getattr(c, f.name) == getattr(real, f.name), (name, f.name)
+    noisy, sticky = PlantConfig.preset("noisy", rng()), PlantConfig.preset("sticky", rng())
+    assert np.allclose(noisy.tau_noise, 3 * np.array(real.tau_noise))
+    assert np.allclose(noisy.bias_amp, 2 * np.array(real.bias_amp))
+    assert np.allclose(sticky.friction_sigmoid[0], 2 * np.array(GAZ_P1))
+    assert sticky.friction_sigmoid[1:] == real.friction_sigmoid[1:]
+    assert PlantConfig.preset("slow-sensor", rng()).observer_gain == 25.0
+    with pytest.raises(ValueError, match="preset: expected one of"):
+        PlantConfig.preset("rough", rng())
+
+
 def test_the_splits_seed_streams_are_disjoint_and_each_episode_is_reproducible():
     cfg = ReliabilityConfig()
-    seeds = {split: [episode_seed(split, plant, kind, i) for plant in ("realistic", "harsh")
+    seeds = {split: [episode_seed(split, plant, kind, i) for plant in PRESETS
                      for kind in ("load", "push") for i in range(2000)] for split in ("tuning", "test")}
     assert len(set(seeds["tuning"])) == len(seeds["tuning"]) == len(set(seeds["test"]))
     assert not set(seeds["tuning"]) & set(seeds["test"])
