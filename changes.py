@@ -305,19 +305,20 @@ class ChangeModel:
         if held is not None:
             logs["wrench"] = max(logs["wrench"], gaussian_log_pdf(d - held, V))
         C0 = V - Y @ self.compensated @ Y.T                            # each earlier payload with its own error
-        own = self.reference.held                                      #   against the one the reference holds
-        states = [(p, c + own) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
+        own = self.reference.held                                      #   and the one the reference holds
+        states = [(p, c) for p, c in zip(payloads.earlier + [np.zeros(4)], payloads.covs + [np.zeros((4, 4))])
                   if np.abs(p - phi).max() > 1e-6]
         backs = []                                                     # from the reference, and from a held wrench
         for p, c in states:
-            Cb = C0 + Y @ c @ Y.T
+            Cb = C0 + Y @ (c + own) @ Y.T
             f, e = cholesky(Cb), d - Y @ (p - phi)
             backs += [(gaussian_log_pdf(e, Cb, f), p, c, None)]
             backs += [] if held is None else [(gaussian_log_pdf(e - held, Cb, f), p, c, held)]
         back = max(backs, key=lambda b: b[0]) if backs else (-np.inf, None, None, None)
         logs["back"] = back[0]
         Cw = J.T @ W @ J + C0                                          # an earlier payload back under a new wrench
-        mixed = [(gaussian_log_pdf(d - Y @ (p - phi), Cw + Y @ c @ Y.T), p, c, None) for p, c in states]   # (a press
+        mixed = [(gaussian_log_pdf(d - Y @ (p - phi), Cw + Y @ (c + own) @ Y.T), p, c, None)   # (a press
+                 for p, c in states]
         mixed = max(mixed, key=lambda b: b[0]) if mixed else (-np.inf, None, None, None)           # let go in a push)
         logs["back+wrench"] = mixed[0] + COMPOUND
         logs["payload"] += EXPECTED if expected else 0.0

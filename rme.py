@@ -595,8 +595,9 @@ class RME:
             self._settled, self._quiet = False, None                      #   is the same state refined)
         m = self.model                       # its error: a window's, referred to the reference level, holds that
         held = np.zeros((4, 4)) if m.reference is None else m.reference.held   # level's error too; an earlier
-        m.compensated = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov   # payload's is
-        m.error = m.compensated - held if due.kind == "back" else m.compensated + held   # its own (judge adds held)
+        own = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov   # payload's is its own,
+        m.error, m.compensated = (own, own + held) if due.kind == "back" else (own + held, own)   # the level shows
+        #                                                                  it beside the reference's
         if due.kind in ("detection", "at rest") and m.reference is not None:   # and what its window carried
             m.error = m.error + self._carried_cov(Y, J, self._q[(self._k - 1) % len(self._q)],
                                                   s.detection_window if due.kind == "detection" else s.window)

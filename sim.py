@@ -91,10 +91,11 @@ class PlantConfig:
             return getattr(PlantConfig, name)(rng)
         c = PlantConfig.realistic(rng)
         p1, p2, p3 = c.friction_sigmoid
-        return {"noisy": lambda: dataclasses.replace(c, tau_noise=tuple(3.0 * x for x in c.tau_noise),
-                                                     bias_amp=tuple(2.0 * x for x in c.bias_amp)),
-                "sticky": lambda: dataclasses.replace(c, friction_sigmoid=(tuple(2.0 * x for x in p1), p2, p3)),
-                "slow-sensor": lambda: dataclasses.replace(c, observer_gain=25.0)}[name]()
+        stressed = {"noisy": dict(tau_noise=tuple(3.0 * x for x in c.tau_noise),
+                                  bias_amp=tuple(2.0 * x for x in c.bias_amp)),
+                    "sticky": dict(friction_sigmoid=(tuple(2.0 * x for x in p1), p2, p3)),
+                    "slow-sensor": dict(observer_gain=25.0)}
+        return dataclasses.replace(c, **stressed[name])
 
     @staticmethod
     def realistic(rng: np.random.Generator) -> "PlantConfig":
