@@ -17,7 +17,7 @@ LAYERS = [
     {"checks", "qp", "dynamics"},
     {"nn_numpy", "vi", "error_model", "detector", "changes", "ds", "cpic", "sim", "motion", "rme_settings"},
     # the method, the plant
-    {"nn_train", "rme"},                                             # the pipeline and the trainer
+    {"nn_train", "window", "rme"},                                   # the pipeline and the trainer
     {"diagnosis"},                                                   # the diagnosis tool
     {"experiments", "franka", "robot"},                              # demos, benchmarks, the robot bridge
 ]
