@@ -86,10 +86,18 @@ class Verdict:
     #                                   the reference)
     kept: np.ndarray | None = None    # noise: the posterior mean (4,) of the payload compensated (nothing
     kept_cov: np.ndarray | None = None  #   changed: the same payload, its estimate N(phi, cov) updated by d) and cov
+    means: dict = field(default_factory=dict)   # each hypothesis' posterior mean of the payload on the flange (4,)
 
     @property
     def sure(self) -> float:
         return self.posterior[self.best]
+
+    def loss(self, Y, phi) -> float:
+        """The expected squared torque error [Nm^2] at the pose (payload regressor Y (n, 4)) of compensating phi (4,):
+        the sum over the hypotheses of its posterior times |Y (phi - its mean)|^2 (the parts of the truth's spread
+        that every compensation pays alike left out)."""
+        return float(sum(p * np.sum((Y @ (np.asarray(phi) - self.means[h])) ** 2)
+                         for h, p in self.posterior.items() if p > 0.0))
 
 
 @dataclass
@@ -329,9 +337,11 @@ class ChangeModel:
         best = max(post, key=post.get)
         earlier = back if best == "back" else mixed
         returned = best.startswith("back")
+        means = {"noise": kept, "payload": new, "wrench": np.asarray(phi, dtype=float),
+                 "back": back[1] if back[1] is not None else phi, "back+wrench": mixed[1] if mixed[1] is not None else phi}
         return Verdict(d, post, best, earlier[1] if returned else new if best == "payload" else None,
                        math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if returned else None,
-                       earlier[3] if returned else under if best == "payload" else None, kept, kept_cov)
+                       earlier[3] if returned else under if best == "payload" else None, kept, kept_cov, means)
 
     def _payload(self, e, Y, V, phi, payloads: Payloads) -> tuple:
         """(log evidence, posterior mean (4,), covariance (4, 4)) of a new payload phi_new ~ payloads, inside its

@@ -218,7 +218,7 @@ class RME(WindowEstimator):
         young = max(k - self._dep.since, k - self._dep.best_since) < s.changes.patience * s.rate   # (a level
         #   younger than that may still change; a level drifting with friction on an arm that keeps moving is never
         #   steady, yet a hypothesis the most probable for that long has had the evidence waiting would add)
-        if v.sure < (s.changes.confidence if young else 0.5) or (moving and not (v.best == "payload" or (
+        if not self._decided_on(v, Y, young) or (moving and not (v.best == "payload" or (
                 v.best == "back" and m.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under),
                                                 q, Y)))):
             return              # undecided; or the level still moves, when only a payload whose mass the data pin
@@ -228,6 +228,18 @@ class RME(WindowEstimator):
         if v.best == "wrench" and (self._still >= S or not young):   # acted on, not moving (friction allowed),
             self._dep.held, self._dep.still = v.d, self._still >= S   # and with the arm moving older than patience:
             #                                  held, a return may step from it (the arm still: a payload too)
+
+    def _decided_on(self, v, Y, young: bool) -> bool:
+        """Whether the most probable hypothesis of v is acted on now. A compensation's change (a payload, a return)
+        when the expected loss of making it (changes.Verdict.loss) is at most (1 - confidence) / confidence of keeping
+        the compensation, while the level is young (waiting may still show which), or below it once it is not; the
+        others, which leave the compensation as it is, when their posterior is at least `confidence`, or above 1/2.
+        Where every other hypothesis keeps the compensation, the two are the same rule."""
+        c = self.settings.changes.confidence
+        if v.best in ("noise", "wrench"):
+            return v.sure >= c if young else v.sure > 0.5
+        act, keep = v.loss(Y, v.means[v.best]), v.loss(Y, self._phi)
+        return act <= (1 - c) / c * keep if young else act < keep
 
     def _act(self, v, q, Y, young: bool):
         """Act on the verdict v the departure was decided by (docs/streaming.md, "When it acts"): estimate a new
