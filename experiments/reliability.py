@@ -214,7 +214,9 @@ def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
 def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One change over its interval [t, t_end): compensated once rested (None: never rested), the time to the right
     mass for good (None: wrong at the interval's end), the longest calm stretch with the held load uncompensated,
-    and how long the compensation of the load before it was kept after it had gone (removals and swaps)."""
+    and how long the compensation of the load before it was kept after it had gone (removals and swaps), and for a
+    change with a push over it, after the end of the pushes over it (a removal inside a push is a wrench's change
+    until the push ends: its torques cannot tell them apart)."""
     t, dt, m_hat = ctx["t"], ctx["dt"], ctx["m_hat"]
     i0, i1 = _index(t, c["t"]), _index(t, t_end)
     right = ctx["right"][i0:i1]
@@ -231,9 +233,13 @@ def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: Reli
         new = np.abs(m_hat[i0:i1] - c["m"]) <= tolerance(c["m"], cfg)
         gone = np.flatnonzero(old & ~new)
         kept = float(t[i0 + gone[-1]] + dt - c["t"]) if len(gone) else 0.0
-    return dict(t=c["t"], m=c["m"], m_before=m0, kind=c["kind"], pushed=_pushed(pushes, c["t"], c["t"], cfg.pushed_within),
+    pushed = _pushed(pushes, c["t"], c["t"], cfg.pushed_within)
+    over = max((s + d for s, _, d in pushes if s < c["t"] + cfg.pushed_within and s + d > c["t"] - cfg.pushed_within),
+               default=c["t"])                      # the end of the pushes over the change
+    return dict(t=c["t"], m=c["m"], m_before=m0, kind=c["kind"], pushed=pushed,
                 compensated=None if not len(rested) else bool(right[rested[-1]]),
-                m_hat_end=float(m_hat[i1 - 1]), to_right_s=to_right, ignored_s=ignored, kept_s=kept)
+                m_hat_end=float(m_hat[i1 - 1]), to_right_s=to_right, ignored_s=ignored, kept_s=kept,
+                kept_after_push_s=None if kept is None or not pushed else max(0.0, kept - (over - c["t"])))
 
 
 def _push_class(force, cfg: ReliabilityConfig) -> str:
@@ -325,7 +331,12 @@ def summarise(load_eps: list, push_eps: list, cfg: ReliabilityConfig) -> dict:
         "ignored_load": dict(changes=len(ignored), over_target=sum(x > cfg.ignored_s for x in ignored),
                              max_s=max(ignored, default=None)),
         "kept_after_gone": dict(changes=len(kept), over_target=sum(x > cfg.kept_s for x in kept),
-                                max_s=max(kept, default=None)),
+                                max_s=max(kept, default=None),
+                                no_push=sum(c["kept_s"] > cfg.kept_s for c in ch if c["kept_s"] is not None
+                                            and not c["pushed"]),
+                                after_push=sum((c.get("kept_after_push_s") or 0.0) > cfg.kept_s for c in ch
+                                               if c["kept_s"] is not None and c["pushed"]),
+                                pushed=sum(c["kept_s"] is not None and c["pushed"] for c in ch)),
         "pushes": {k: _share(p["compensated"] for p in pushes if p["kind"] == k) for k in ("sideways", "press", "up")},
         "presses_withdrawn": _share(p["outlived_s"] <= cfg.withdraw_s for p in presses if p["compensated"]),
         "press_rise_mm": dict(count=len(rises), over_target=sum(x >= cfg.rise_mm for x in rises),
@@ -417,6 +428,9 @@ def print_summary(res: dict, cfg: ReliabilityConfig):
         d = s[key]
         rows.append((label, f"> {target} s in {d['over_target']}/{d['changes']} changes, longest "
                             f"{sec(d['max_s'])}", "0"))
+        if key == "kept_after_gone":
+            rows.append((f"  of those without a push / after the end of a push over it", f"> {target} s in "
+                         f"{d['no_push']}/{d['changes'] - d['pushed']} / {d['after_push']}/{d['pushed']}", "0 / 0"))
     rows += [("sideways pushes compensated", frac(s["pushes"]["sideways"]), "0"),
              ("presses compensated (allowed)", frac(s["pushes"]["press"]), "-"),
              (f"  of those withdrawn within {1e3 * cfg.withdraw_s:.0f} ms of the release", frac(s["presses_withdrawn"]),

@@ -143,6 +143,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     assert [c["to_right_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, 1.5], abs=1e-9)
     assert [c["ignored_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, None], abs=1e-9)
     assert (attach["kept_s"], swap["kept_s"], removal["kept_s"]) == (None, pytest.approx(1.7), pytest.approx(0.1))
+    assert [c["kept_after_push_s"] for c in s["changes"]] == [None, None, None]   # no push over them
     (push,) = s["pushes"]
     assert push["kind"] == "sideways" and push["compensated"] and push["outlived_s"] == pytest.approx(0.4)
     # push-only: a press 2-3 s read as 1.5 kg from 2.3 s to 3.15 s, the hand 12 mm above its target at 3.1 s
@@ -172,6 +173,13 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
                        dict(t=2.0, m=0.0, r=np.zeros(3), kind="removal")], pushes=[])
     attach, removal = score(rec, ep, cfg)["changes"]
     assert removal["to_right_s"] is None and removal["compensated"] is False and removal["kept_s"] == pytest.approx(2.0)
+    # the same under a push 1.8-3.0 s: kept 1.0 s after the push's end, counted there, not without a push
+    pushed = score(rec, dict(ep, pushes=[(1.8, np.array([20.0, 0.0, 0.0]), 1.2)]), cfg)["changes"][1]
+    assert pushed["pushed"] and pushed["kept_after_push_s"] == pytest.approx(1.0)
+    km = summarise([score(rec, ep, cfg)], [], cfg)["kept_after_gone"]
+    assert (km["no_push"], km["pushed"], km["after_push"]) == (1, 0, 0)
+    km = summarise([score(rec, dict(ep, pushes=[(1.8, np.array([20.0, 0.0, 0.0]), 1.2)]), cfg)], [], cfg)
+    assert [km["kept_after_gone"][k] for k in ("over_target", "no_push", "pushed", "after_push")] == [1, 0, 1, 0]
     assert attach["to_right_s"] == pytest.approx(0.2)
     rec.dq[(rec.t >= 2.0 - 1e-9) & (rec.t < 3.75 - 1e-9)] = 0.05   # calm only 0.25 s after the removal: never rested
     assert score(rec, ep, cfg)["changes"][1]["compensated"] is None
