@@ -344,10 +344,14 @@ class RME(WindowEstimator):
 
     def _corrected(self, v):
         """theta (4,) the noise hypothesis' posterior v.kept (4,) compensates (within what the arm carries: safe_theta),
-        or None when its mass is within half the tolerance (10 % or 50 g) of the compensated one, or not finite (a
-        posterior outside what the arm carries, clipped, would leave the level where it is and be corrected again)."""
+        or None when its mass is within half the tolerance (10 % or 50 g) of the compensated one, or not finite, or
+        its CoM beyond max_com (a posterior outside what the arm carries, clipped, would leave the level where it is
+        and be corrected again)."""
         if not np.all(np.isfinite(v.kept)):
             return None
+        if v.kept[0] > 0 and np.abs(v.kept[1:]).max() > self.settings.max_com * v.kept[0]:
+            return None                      # no payload a hand carries (its CoM beyond max_com): a move of the
+            #                                  level's bias, not of the payload's estimate
         theta = safe_theta(np.nan_to_num(theta_of(v.kept)), self.theta, self.settings.max_mass)
         return theta if abs(theta[0] - self.theta[0]) > max(0.05 * theta[0], 0.025) else None
 

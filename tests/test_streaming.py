@@ -154,6 +154,33 @@ def test_a_payload_becomes_a_state_to_return_to_once_its_level_held(held):
     assert any(within(m, 0.8) for m in kept) == (held > 1.0), (kept, [(e.t, e.kind) for e in est.history])
 
 
+def test_a_heavy_load_swapped_for_one_close_to_none_is_withdrawn_at_once():
+    """Synthetic stream at the ready pose, the arm still: 1.5-3 kg compensated, then swapped for 20-60 g, which a
+    return to no payload and a new light payload explain about as well. Every hypothesis but those keeping the
+    compensation says it is 1.4-3 kg off, so the heavy load's compensation goes at the first judgement that sees
+    the level (within 0.1 s: the 40-sample level and a 5 ms judgement), whichever of the two it takes; and the mass
+    ends right."""
+    robot = Robot.panda()
+    draws = np.random.default_rng(2041)
+    for _ in range(8):
+        heavy = np.array([draws.uniform(1.5, 3.0), *draws.uniform(-0.08, 0.08, 2), draws.uniform(0, 0.1)])
+        light = np.array([draws.uniform(0.02, 0.06), *draws.uniform(-0.05, 0.05, 2), draws.uniform(0, 0.1)])
+        est = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0))
+        noise = np.random.default_rng(1)
+        gone = None
+        for k in range(4000):
+            theta = None if k < 1000 else heavy if k < 2500 else light
+            tau = np.zeros(7) if theta is None else robot.payload_torque(Q_READY, theta)
+            est.update(Q_READY, np.zeros(7), tau + 0.01 * noise.normal(size=7))
+            if k == 2499:
+                assert within(est.theta[0], heavy[0])
+            if k >= 2500 and gone is None and not within(est.theta[0], heavy[0]):
+                gone = (k - 2500) / 1000
+        story = (heavy[0], light[0], [(e.t, e.kind, round(e.mean[0], 3)) for e in est.history])
+        assert gone is not None and gone <= 0.1, (gone, story)
+        assert within(est.theta[0], light[0]), story
+
+
 def _creeping_hold(draws, samples, friction, stop=None):
     """A synthetic stream at the ready pose: m of 0.5-2.5 kg (its CoM within 8 cm; drawn from `draws`) hung on at
     sample 1000 as the joints start creeping at 0.2-0.3 rad/s (random signs), slowing with a time constant of 0.7 s,
