@@ -329,3 +329,32 @@ def test_a_covariance_rounding_makes_indefinite_is_factored_with_a_jitter():
     A = rng.normal(size=(N, N))
     good = A @ A.T + np.eye(N)
     assert gaussian_log_pdf(x, good) == pytest.approx(multivariate_normal(np.zeros(N), good).logpdf(x), rel=1e-12)
+
+
+def test_the_expected_loss_of_a_compensation_is_the_posterior_weighted_torque_error():
+    """Verdict.loss against a direct sum over the hypotheses, and the decision it makes (RME._decided_on): where every
+    other hypothesis keeps the compensation, acting at once is exactly posterior >= confidence and, once the level is
+    old, posterior > 1/2; where the others move it away too, keeping is the costly choice."""
+    from changes import HYPOTHESES, Verdict
+    from rme import RME
+    rng = np.random.default_rng(2042)
+    est = RME(weights=None, rng=np.random.default_rng(0))
+    c = est.settings.changes.confidence
+    for _ in range(200):
+        _, _, Y = arm(rng)
+        phi = np.array([rng.uniform(0.5, 3.0), *rng.normal(0, 0.05, 3)])
+        back = np.array([rng.uniform(0.0, 0.3), *rng.normal(0, 0.01, 3)])
+        p = rng.dirichlet(np.full(len(HYPOTHESES), 0.3))
+        means = {h: phi.copy() for h in HYPOTHESES}
+        means["back"] = back
+        v = Verdict(np.zeros(N), dict(zip(HYPOTHESES, p)), "back", means=means)
+        direct = sum(ph * np.sum((Y @ (back - means[h])) ** 2) for h, ph in zip(HYPOTHESES, p))
+        assert v.loss(Y, back) == pytest.approx(direct, rel=1e-12)
+        est._phi = phi
+        pb = v.posterior["back"]
+        if min(abs(pb - c), abs(pb - 0.5)) > 1e-9:                  # (rounding aside)
+            assert est._decided_on(v, Y, young=True) == (pb >= c)
+            assert est._decided_on(v, Y, young=False) == (pb > 0.5)
+        means["payload"] = back + rng.normal(0, 0.005, 4)        # a light payload: also far from phi
+        p2 = dict(v.posterior, back=0.9, payload=0.1 - 1e-3, noise=1e-3, wrench=0.0, **{"back+wrench": 0.0})
+        assert est._decided_on(Verdict(np.zeros(N), p2, "back", means=means), Y, young=True)

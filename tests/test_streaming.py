@@ -512,6 +512,13 @@ def test_a_correction_is_made_only_when_the_payload_it_compensates_moves_the_mas
     est.theta = np.array([top, 0.0, 0.0, 0.0])
     assert est._corrected(verdict([top + 1.0, 0.0, 0.0, 0.0])) is None      # beyond max_mass: clipped to the held
     assert est._corrected(verdict([0.5 * top, 0.0, 0.0, 0.0]))[0] == 0.5 * top
+    # a light "payload" whose CoM is beyond max_com (0.04 kg with 0.076 kg m: r = 1.9 m, clipped to 1 m, which
+    # would not leave the level the posterior says): no payload a hand carries, no correction; at max_com it is one
+    est.theta = np.zeros(4)
+    R = est.settings.max_com
+    assert est._corrected(verdict([0.04, -0.02, 0.026, -0.076])) is None
+    assert est._corrected(verdict([0.3, 0.0, 0.0, 1.01 * R * 0.3])) is None
+    np.testing.assert_allclose(est._corrected(verdict([0.3, 0.0, 0.0, 0.99 * R * 0.3])), [0.3, 0, 0, 0.99 * R])
 
 
 def test_a_correction_carries_the_spread_of_theta_under_the_noise_hypothesis_posterior():
