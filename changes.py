@@ -40,6 +40,8 @@ class ChangeSettings:
     detect: float = 24.3            # chi^2 of the level's departure from the reference that opens a judgement
                                     #   (chi2.isf(1e-3, 7): one false start a second at rest)
     confidence: float = 0.99        # posterior probability of the best hypothesis to act on at once; below it, wait
+                                    #   (a change of the compensation: its expected loss at most (1 - c) / c of
+                                    #   keeping's, the same bar where the other hypotheses keep it; Verdict.loss)
     patience: float = 0.3           # s: then, once the level no longer moves, act on the most probable hypothesis (a
                                     #   phantom and a missed load cost alike): the level of a compliant arm settles
                                     #   within 0.2-0.4 s of a load change (CPIC on the realistic plant), after which
