@@ -339,8 +339,8 @@ class ChangeModel:
         best = max(post, key=post.get)
         earlier = back if best == "back" else mixed
         returned = best.startswith("back")
-        means = {"noise": kept, "payload": new, "wrench": np.asarray(phi, dtype=float),
-                 "back": back[1] if back[1] is not None else phi, "back+wrench": mixed[1] if mixed[1] is not None else phi}
+        means = {"noise": kept, "payload": new, "wrench": np.asarray(phi, dtype=float)}
+        means.update({h: phi if b[1] is None else b[1] for h, b in (("back", back), ("back+wrench", mixed))})
         return Verdict(d, post, best, earlier[1] if returned else new if best == "payload" else None,
                        math.sqrt(max(cov[0, 0], 0.0)), earlier[2] if returned else None,
                        earlier[3] if returned else under if best == "payload" else None, kept, kept_cov, means)
