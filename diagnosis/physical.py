@@ -244,12 +244,16 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
     obj = lambda u: 0.5 * u @ H @ u - f @ u                                # noqa: E731
     f_u = obj(d * c_u)
     t = m / max(obj(u) - f_u, 1e-300)
-    steps = 0
+    steps, singular = 0, False
     for _ in range(40):                                                 # t grows by 10 per round: 1e40 at most
         for _ in range(newton):                                         # centering: Newton on t obj + phi
             phi, g, Hb = barrier(u)
             grad = t * (H @ u - f) + g
-            du = -np.linalg.solve(t * H + Hb + t * ridge, grad)
+            try:
+                du = -np.linalg.solve(t * H + Hb + t * ridge, grad)
+            except np.linalg.LinAlgError:
+                singular = True                 # the Newton system singular in rounding (t large): no step left,
+                break                           # the point reached is inside and as close as this t gets
             dec = -grad @ du
             steps += 1
             if dec / 2 <= 1e-12 * max(1.0, abs(t * obj(u))):
@@ -264,10 +268,11 @@ def _solve_barrier(H, f, d, lo, hi, segs, c_u, gap: float = 1e-13, newton: int =
             if alpha <= 1e-12:
                 break                           # no feasible descent left at this t (rounding): stay inside
             u = u + alpha * du
-        if m / t <= gap * max(abs(f_u), 1e-300):
+        if singular or m / t <= gap * max(abs(f_u), 1e-300):
             break
         t *= 10.0
-    return u / d, f"barrier: {steps} Newton steps, duality gap <= {m / t:.2g}"
+    return u / d, f"barrier: {steps} Newton steps, duality gap <= {m / t:.2g}" + (
+        ", stopped where the Newton system became singular in rounding" if singular else "")
 
 
 def _interior(u, d, lo, hi, bodies, cones):
