@@ -142,6 +142,7 @@ def fit_steps(S, phi0, phi_cov=None, settings: FitSettings = FitSettings()):
     mu = S[:, :11, 11] / N if settings.offsets else np.zeros((n, 11))   # (n, 11) the means of (Y_j, tau_j)
     C = S[:, :11, :11] - N * mu[:, :, None] * mu[:, None, :]   # (n, 11, 11) centred: the offsets b partialled out
     w = np.ones(n)
+    yield                                                      # (the solves from the next sample on)
     for _ in range(2):                                         # weights from the residual of the pass before
         x, G = _weighted_solve(C, w, Pinv, mean)
         w = 1.0 / np.maximum(np.sqrt(_rss(C, x) / N), settings.min_noise)
@@ -191,6 +192,7 @@ def _physical_steps(x, G, settings):
                 return pi, "projected", steps
             t *= 20.0
             F, _ = _barrier(pi, t, f)
+            yield                                              # (the next t's first Newton step: the next sample)
             continue
         s = 1.0
         for _ in range(50):                                    # backtracking: stay inside, decrease enough
