@@ -98,9 +98,10 @@ class InertialCompensation:
     rows of that motion are kept as the arm's own residual; once it compensates one, each row of motion (less its
     nearest unloaded row) is added to running normal equations, and every settings.window rows pi is refitted from
     them (its first four from RME's (m, m r) as the prior); a change of RME's estimate (a new load) starts again from
-    a point mass at that estimate. A sample's own work is bounded: one row (every settings.every samples) and one
-    step of a refit in flight (motion.inertia.fit_steps), or, with an executor (submit(fn, *args) -> a future with
-    done()), the refit runs there and is polled, never waited on. fits: [(t, pi, FitInfo)], t when applied."""
+    a point mass at that estimate. A sample's own work is bounded: one row (every settings.every samples) or one
+    step of a refit in flight (motion.inertia.fit_steps; both with every = 1), or, with an executor (submit(fn,
+    *args) -> a future with done()), the refit runs there and is polled, never waited on. fits: [(t, pi, FitInfo)],
+    t when applied."""
 
     def __init__(self, rme, settings: InertiaSettings = InertiaSettings(), executor=None):
         checks.instance("settings", settings, InertiaSettings), checks.has_methods("rme", rme, "update")
@@ -164,7 +165,6 @@ class InertialCompensation:
             return comp                                      # RME dropped it: so does the inertial part
         if np.any(self.rme.theta != self._seen):
             self._reset(self.rme.theta)
-        self._advance()
         _, R, J = self.robot.kinematics(q)
         k = self._k % W
         self._twist[k], self._J[k], self._R[k] = J @ dq, J, R
@@ -175,8 +175,9 @@ class InertialCompensation:
                           self.settings.max_acceleration)
             self._state = (J, R, self._twist[k], acc)
             self.inertial = self._torque(*self._state) if self.pi[0] > 0 else np.zeros(n)
-            if self._k % self.settings.every == 0:
-                self._row(k)
+        rowed = self._k >= W and self._k % self.settings.every == 0 and self._row(k)
+        if not rowed or self.settings.every == 1:             # a refit's step on a sample without a row
+            self._advance()
         if self._last is not None and np.abs(comp - self._last).max() > self.settings.jolt:
             self._step_at = self._k                          # RME's part stepped: the arm jolts
         self._last = comp
@@ -189,9 +190,10 @@ class InertialCompensation:
         tau = J.T @ np.concatenate([R @ f, R @ m])
         return np.clip(tau, -self.settings.max_torque, self.settings.max_torque) if np.isfinite(tau.sum()) else 0 * tau
 
-    def _row(self, k):
+    def _row(self, k) -> bool:
         """One row at the centre of the filter window: smoothed q-state, tau_ext and the regressor, filtered alike;
-        none while the window starts within settings.settle of a step. O(reference_rows n + n 12^2) operations."""
+        none while the window starts within settings.settle of a step. O(reference_rows n + n 12^2) operations.
+        True when it kept the row."""
         s, W = self.settings, self.settings.filter_window
         c = (k + 1 + W // 2) % W                             # the centre sample's slot
         S, D = self._smooth[k], self._deriv[k]
@@ -199,12 +201,12 @@ class InertialCompensation:
         if s.observer_gain:
             tau = tau + (D @ self._tau) / s.observer_gain     # tau_ext lags the torque by 1/K
         if np.abs(dq).max() < s.min_speed or self._k - W < self._step_at + self._settle:
-            return
+            return False
         x = np.concatenate([self._q[c] * s.scale[0], dq * s.scale[1], ddq * s.scale[2]])
         if self.pi[0] <= 0:                                   # no payload: the arm's own residual
             i = self._ref_n % len(self._ref_x)
             self._ref_x[i], self._ref_sq[i], self._ref_tau[i], self._ref_n = x, x @ x, tau, self._ref_n + 1
-            return
+            return True
         J, R, V, acc = self._J[c], self._R[c], S @ self._twist, D @ self._twist
         Y = regressor_rows(J, R, R.T @ V[3:], R.T @ acc[3:], R.T @ (acc[:3] - self._gR))
         found = True
@@ -222,6 +224,7 @@ class InertialCompensation:
             self._blocks = (self._blocks + [self._S])[-max(s.max_rows // s.window, 1):]
             self._S, self._new = np.zeros_like(self._S), 0
             self._start(sum(self._blocks))
+        return True
 
     def _start(self, S):
         """A refit on the statistics S (n, 12, 12): on the executor, or as steps run one per sample."""

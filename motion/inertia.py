@@ -173,15 +173,17 @@ def _physical_steps(x, G, settings):
     """The pi nearest to x in the metric G (10, 10) with pseudo_inertia(pi) >= 0, a convex problem: the log-det
     barrier t |pi - x|^2_G / 2 - log det P(pi) minimised by damped Newton steps for t rising 20-fold until the
     gap 4 / t is below settings.gap of the cost (Boyd and Vandenberghe 2004, Sec. 11.3), from x's clipped
-    projection. One Newton step per next(); returns (pi, status, iterations)."""
+    projection. One Newton step or one trial of its line search per next(); returns (pi, status, iterations)."""
     P = pseudo_inertia(x)
-    if np.linalg.eigvalsh(P).min() >= -settings.tolerance * max(np.abs(P).max(), 1e-12):
-        return x, "ok", 0
     w, V = np.linalg.eigh(P)
+    if w.min() >= -settings.tolerance * max(np.abs(P).max(), 1e-12):
+        return x, "ok", 0
     pi = params_of((V * np.maximum(w, 1e-6 * max(np.abs(w).max(), 1e-12))) @ V.T)   # strictly feasible
+    yield
     f = lambda p: 0.5 * (p - x) @ G @ (p - x)
     t, steps = 4.0 / max(f(pi), settings.gap), 0
     F, _ = _barrier(pi, t, f)
+    yield                                                      # (the Newton steps from the next sample on)
     while steps < settings.max_steps:
         Pinv = np.linalg.inv(pseudo_inertia(pi))
         B = Pinv @ _BASIS                                      # (10, 4, 4): P^-1 B_k
@@ -189,6 +191,7 @@ def _physical_steps(x, G, settings):
         d = -np.linalg.solve(t * G + np.einsum("kij,lji->kl", B, B), g)
         if -g @ d < 1e-6:                                      # Newton decrement^2: centred for this t
             if 4.0 / t < settings.gap * max(f(pi), 1.0):
+                yield                                          # (the result's residual on the next sample)
                 return pi, "projected", steps
             t *= 20.0
             F, _ = _barrier(pi, t, f)
@@ -200,6 +203,7 @@ def _physical_steps(x, G, settings):
             if ok and F_new <= F + 0.25 * s * (g @ d):
                 break
             s *= 0.5
+            yield                                              # (the next trial on the next sample)
         else:
             return pi, "max steps", steps                      # no step inside: pi is physical as it is
         pi, F, steps = pi + s * d, F_new, steps + 1
