@@ -64,6 +64,7 @@ def calibrated():
     return plant, model
 
 
+@pytest.mark.slow
 def test_a_map_fitted_on_a_load_free_log_predicts_the_plant_pose_bias_at_poses_it_never_held():
     """Held-out poses drawn inside the calibrated box (80 % of its half-widths): the map (tau_ext sign) is the
     negated Plant.pose_bias within 0.02 Nm on every joint (a tenth of the bias's amplitude, about half the sensor's

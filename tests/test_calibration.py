@@ -31,6 +31,7 @@ def test_two_sigma_intervals_cover_90_to_99_percent_and_are_sharp(calibration):
     assert np.all(std.mean(axis=0) <= 2.0 * np.sqrt(np.mean(err**2, axis=0)))     # mean sigma <= 2 x RMS error
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scale", [0.5, 2.0])
 def test_a_sigma_twice_too_narrow_or_too_wide_would_fail_the_band(calibration, scale):
     err, std = calibration

@@ -84,6 +84,7 @@ def test_a_change_that_leaves_the_squared_norm_unchanged_is_not_seen():
     assert fired and 1000 <= fired[0] < 1500
 
 
+@pytest.mark.slow
 def test_rme_with_algorithm_1_compensates_loads_added_and_removed_with_ideal_sensors():
     """The paper's pipeline (RMESettings(detector=DetectorSettings())) in the loop on the simulated Panda held by
     CPIC with noise-free torque sensors (what Alg. 1's single-sample test of ||tau_ext||^2 assumes), on fresh seeded

@@ -178,8 +178,8 @@ def _check_parameters(effect, model):
         np.testing.assert_allclose(p[effect][1:4] / p[effect][0], r, atol=0.01)
 
 
-@pytest.mark.parametrize("effect", ["viscous", "coulomb", "sigmoid", "offset", "rotor", "tilt", "payload",
-                                    "rigid_payload"])
+@pytest.mark.parametrize("effect", ["offset", "tilt", "payload"] + [pytest.param(e, marks=pytest.mark.slow) for e in
+                                    ("viscous", "coulomb", "sigmoid", "rotor", "rigid_payload")])
 def test_diagnose_ranks_the_hidden_effect_first_and_cuts_its_held_out_error(effect):
     d = diagnosed(effect)
     assert d.ranking[0]["effect"] == effect and d.ranking[0]["significant"], [r["effect"] for r in d.ranking]
@@ -195,6 +195,7 @@ def test_diagnose_ranks_the_hidden_effect_first_and_cuts_its_held_out_error(effe
     _check_parameters(effect, d.model)
 
 
+@pytest.mark.slow
 def test_forward_selection_finds_two_hidden_effects():
     d = diagnosed("sigmoid+offset")
     assert sorted(d.selected) == ["offset", "sigmoid"], d.selected

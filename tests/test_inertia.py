@@ -202,6 +202,7 @@ def test_settings_are_checked():
         fit_inertia(np.zeros((5, 7, 9)), np.zeros((5, 7)), np.zeros(4))
 
 
+@pytest.mark.slow
 def test_rows_after_a_compensation_step_are_screened_out():
     """RME's compensation switches on 1 s into the motion (a step of several Nm): with the rows of the next
     settle = 0.3 s screened out the fit stays within 10 % (the filters' own bias, above); taking them triples

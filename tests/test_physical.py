@@ -209,6 +209,7 @@ def test_models_with_widths_angles_and_bodies_round_trip_and_correct_exactly(tmp
     np.testing.assert_allclose(model.correction(q, dq), want, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_bounded_offsets_and_a_payload_cone_far_from_the_data_match_a_reference_solver():
     """Data that ask for offsets of thousands of Nm beside a payload 2 m from the hand: the solve stays inside the +-1 Nm box
     and the 0.3 m cone and is no worse than scipy's trust-constr on the same convex problem (fresh seeded draws)."""

@@ -154,6 +154,7 @@ def test_a_payload_becomes_a_state_to_return_to_once_its_level_held(held):
     assert any(within(m, 0.8) for m in kept) == (held > 1.0), (kept, [(e.t, e.kind) for e in est.history])
 
 
+@pytest.mark.slow
 def test_a_heavy_load_swapped_for_one_close_to_none_is_withdrawn_at_once():
     """Synthetic stream at the ready pose, the arm still: 1.5-3 kg compensated, then swapped for 20-60 g, which a
     return to no payload and a new light payload explain about as well. Every hypothesis but those keeping the

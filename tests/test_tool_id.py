@@ -206,6 +206,7 @@ def test_the_momentum_observer_follows_mujocos_external_torque_with_its_first_or
     assert np.abs(lagged).max() > 1.0                        # the tool's torque is there to be followed
 
 
+@pytest.mark.slow
 def test_a_push_ends_the_run_within_its_stated_time():
     """A 25 N push on the hand at a drawn time and direction (fresh seeded draws, the realistic plant holding a random
     tool): confirmed within 50 ms of its start, and the run ends settings.stop_after later (the loop's last sample),
@@ -322,6 +323,7 @@ def test_an_offset_drift_between_the_reference_and_the_tool_run_leaves_the_fit_w
                                                                                                  fit.value, truth)
 
 
+@pytest.mark.slow
 def test_the_intervals_carry_the_drives_model_of_the_two_motions_difference():
     """The tool run lags the reference by 2-5 ms and swings up to 2 % wider (the tool changes how the arm tracks);
     each run's drives add Gaz et al.'s sigmoid friction (sim.GAZ_P*) and a rotor inertia (0.05 / 0.02 kg m^2), a
@@ -541,6 +543,7 @@ def test_rows_near_a_missed_cycle_are_left_out_of_the_fit():
     assert not within(fit_logs(robot, log(tau_run, []), reference))
 
 
+@pytest.mark.slow
 def test_a_log_file_pairs_its_rows_by_control_cycle_as_the_run_does(tmp_path, capsys):
     """rme.py identify LOG --reference REF reads each file as the run it records: one row per control cycle, the
     robot's stamps skipping the cycles it missed. Synthetic runs of the motion: what both runs carry (a random hand

@@ -216,6 +216,7 @@ def test_converges_in_far_fewer_than_700_iterations(simulated):
     assert max(iters) <= 150 and np.median(iters) <= 50
 
 
+@pytest.mark.slow
 def test_simulated_windows_estimate_mass_and_horizontal_com_with_coverage(simulated):
     """Tolerances: m within 0.03 kg (Table 5's errors reach 0.08 kg); for m >= 0.3 kg (Table 5's lightest) the CoM's
     world-horizontal part, which the torques observe (r along gravity is unobservable from one pose), within
