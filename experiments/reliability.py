@@ -254,11 +254,11 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One push [s, e): a sample is the push's compensation if the compensated mass has moved from the one before
     the push by more than the tolerance, is off the true mass by more than the tolerance, and further off it than
     the one before (no load change warrants it). Compensated: such a sample in [s, e), or in [e, e + after_push)
-    with no other push acting (a detection's lag; a push then acting owns it); outlived: the last such sample before
-    the next change or push, less the end of the pushes acting at e (its own or a longer one under which it began or
-    ended: until then the compensation may be theirs); rise (presses alone: no other
-    push or change from s to the end of the release window, else None): the end effector's height above its target
-    after e."""
+    with no other push acting (a detection's lag; a push then acting owns it), up to the next change (from s on: a
+    change's compensation is scored as its own) or push; outlived: the last such sample, less the end of the pushes
+    acting at e (its own or a longer one under which it began or ended: until then the compensation may be theirs);
+    rise (presses alone: no other push or change from s to the end of the release window, else None): the end
+    effector's height above its target after e."""
     s, force, d = push
     e = s + d
     t, m_hat, right = ctx["t"], ctx["m_hat"], ctx["right"]
@@ -267,7 +267,7 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     last = e                                 # the end of the pushes still acting when it ends (a compensation
     for p in sorted(ep["pushes"], key=lambda p: p[0]):   # until then may be theirs: a press under it)
         last = max(last, p[0] + p[2]) if p[0] <= last else last
-    nxt = [x for x in [c["t"] for c in ep["changes"]] + [p[0] for p in ep["pushes"]] if x > last]
+    nxt = [c["t"] for c in ep["changes"] if c["t"] > s] + [p[0] for p in ep["pushes"] if p[0] > last]
     k_end = _index(t, min(nxt, default=t[-1] + ctx["dt"]))
     m = rec.theta[k_s:k_end, 0]
     h = m_hat[k_s:k_end]

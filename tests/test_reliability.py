@@ -161,6 +161,18 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     pushes = score(late, dict(changes=[], pushes=[side, down]), cfg)["pushes"]
     assert [x["compensated"] for x in pushes] == [False, True]
     assert score(late, dict(changes=[], pushes=[side]), cfg)["pushes"][0]["compensated"]
+    # a load swapped under a sideways push: 1 kg held and compensated, the push 1.0-2.0 s, 2 kg from 1.5 s, read as
+    # none 1.6-1.9 s, then 2 kg: the swap's reading (off the new load), not the push's
+    swapped = _trace(3.0, [(0.6, 1.6, 1.0), (1.9, 3.0, 2.0)])
+    swapped.theta[(swapped.t >= 0.5 - 1e-9), 0] = 1.0
+    swapped.theta[(swapped.t >= 1.5 - 1e-9), 0] = 2.0
+    ep2 = dict(changes=[dict(t=0.5, m=1.0, r=np.zeros(3), kind="attach"),
+                        dict(t=1.5, m=2.0, r=np.zeros(3), kind="swap")],
+               pushes=[(1.0, np.array([15.0, 0.0, 0.0]), 1.0)])
+    s2 = score(swapped, ep2, cfg)
+    assert not s2["pushes"][0]["compensated"] and s2["changes"][1]["to_right_s"] == pytest.approx(0.4)
+    swapped.theta_hat[(swapped.t >= 1.2 - 1e-9) & (swapped.t < 1.4 - 1e-9), 0] = 0.3   # read before the swap: its own
+    assert score(swapped, ep2, cfg)["pushes"][0]["compensated"]
     sm = summarise([s], [p], cfg)
     assert sm["compensated"]["all"]["yes"] == 3 and sm["to_right_s"]["no_push"]["attach"]["median"] == pytest.approx(0.6)
     assert sm["ignored_load"]["over_target"] == 1 and sm["kept_after_gone"]["over_target"] == 1
