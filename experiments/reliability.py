@@ -183,9 +183,9 @@ def _run_length(mask: np.ndarray) -> np.ndarray:
     return np.where(mask, idx - last_false, 0)
 
 
-def _pushed(pushes, t0: float, t1: float, pad: float) -> bool:
-    """Is any push active within pad of [t0, t1]?"""
-    return any(s < t1 + pad and s + d > t0 - pad for s, _, d in pushes)
+def _pushes_over(pushes, t: float, pad: float) -> list:
+    """The ends of the pushes active within pad of t."""
+    return [s + d for s, _, d in pushes if s < t + pad and s + d > t - pad]
 
 
 def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
@@ -233,9 +233,8 @@ def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: Reli
         new = np.abs(m_hat[i0:i1] - c["m"]) <= tolerance(c["m"], cfg)
         gone = np.flatnonzero(old & ~new)
         kept = float(t[i0 + gone[-1]] + dt - c["t"]) if len(gone) else 0.0
-    pushed = _pushed(pushes, c["t"], c["t"], cfg.pushed_within)
-    over = max((s + d for s, _, d in pushes if s < c["t"] + cfg.pushed_within and s + d > c["t"] - cfg.pushed_within),
-               default=c["t"])                      # the end of the pushes over the change
+    ends = _pushes_over(pushes, c["t"], cfg.pushed_within)
+    pushed, over = bool(ends), max(ends, default=c["t"])   # (the end of the pushes over the change)
     return dict(t=c["t"], m=c["m"], m_before=m0, kind=c["kind"], pushed=pushed,
                 compensated=None if not len(rested) else bool(right[rested[-1]]),
                 m_hat_end=float(m_hat[i1 - 1]), to_right_s=to_right, ignored_s=ignored, kept_s=kept,
