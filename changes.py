@@ -211,31 +211,34 @@ class ChangeModel:
         self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.mean(S, of=self._v)),
                                    np.array(gradient, dtype=float), self._k, self.error.copy())
 
-    def covariance(self, q, Y=None, moving=True, friction=True) -> np.ndarray:
+    def covariance(self, q, Y=None, moving=True, friction=True, look=None) -> np.ndarray:
         """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
         noise and the reference's, friction in motion now and then, the level still moving, the robot model's error
         carried along the pose change since the reference (model_error of the gravity torque's change), the
         sensors' pose-dependent offset carried along it (a Gaussian process of std pose_bias and length bias_length
         in joint space: 2 pose_bias^2 (1 - exp(-|q - q_ref|^2 / (2 bias_length^2))) per joint), and with the payload
-        regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T."""
-        own, g = self._parts(q, moving, friction)
+        regressor Y (n, 4) at q, the compensated payload's own uncertainty Y cov Y^T. look: the level's samples
+        (default `short`)."""
+        own, g = self._parts(q, moving, friction, look)
         C = np.outer(g, g)
         C.flat[::self.n + 1] += own
         return C if Y is None else C + Y @ self.compensated @ Y.T
 
-    def variance(self, q, Y=None, moving=True, friction=True) -> np.ndarray:
+    def variance(self, q, Y=None, moving=True, friction=True, look=None) -> np.ndarray:
         """The diagonal (n,) of `covariance`, without forming it (the tests of every 5th sample)."""
-        own, g = self._parts(q, moving, friction)
+        own, g = self._parts(q, moving, friction, look)
         v = own + g * g
         return v if Y is None else v + np.einsum("ij,jk,ik->i", Y, self.compensated, Y)
 
-    def _parts(self, q, moving, friction):
-        """covariance's per-joint variances (n,) and the pose error's direction g (n,) (its rank-one part g g^T)."""
+    def _parts(self, q, moving, friction, look=None):
+        """covariance's per-joint variances (n,) and the pose error's direction g (n,) (its rank-one part g g^T),
+        for a level of `look` samples (default `short`: a shorter one's noise grows as short / look)."""
         s, ref, S = self.s, self.reference, self.s.short
+        L = look or S
         fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
-        moving = (self.mean(S) - self.mean(S, S)) if moving else 0.0  # how far the level moved over the last S
+        moving = (self.mean(L) - self.mean(L, L)) if moving else 0.0  # how far the level moved over the last L
         g, bias = self.carried(q)
-        return 2 * self.noise + fric + moving * moving + bias + self.inertial, g
+        return (1 + S / L) * self.noise + fric + moving * moving + bias + self.inertial, g
 
     def carried(self, q):
         """What the pose's change since the reference, to q (n,), carries into the level: the robot model's error of
@@ -267,17 +270,18 @@ class ChangeModel:
         f = self.friction(self.mean(2 * S, of=self._v)) if friction else 0.0
         return float(u @ (u / (2 * self.noise + 2 * f * f)))
 
-    def departure(self, q, Y=None) -> float:
-        """chi^2 of the short level's departure from the reference under `covariance` (diagonal part)."""
-        d = self.mean(self.s.short) - self.reference.level
-        return float(d @ (d / self.variance(q, Y)))
+    def departure(self, q, Y=None, look=None) -> float:
+        """chi^2 of the level's departure from the reference under `covariance` (diagonal part); look: the level's
+        samples (default `short`)."""
+        d = self.mean(look or self.s.short) - self.reference.level
+        return float(d @ (d / self.variance(q, Y, look=look)))
 
     # --- the judgement -----------------------------------------------------------------------------
-    def explains(self, prediction, q, Y) -> bool:
+    def explains(self, prediction, q, Y, look=None) -> bool:
         """Whether the level's departure is `prediction` (n,) within the noise, friction and pose error alone (not
         the allowance for a level still moving): chi^2 <= detect."""
-        u = self.mean(self.s.short) - self.reference.level - prediction
-        return bool(u @ (u / self.variance(q, Y, moving=False)) <= self.s.detect)
+        u = self.mean(look or self.s.short) - self.reference.level - prediction
+        return bool(u @ (u / self.variance(q, Y, moving=False, look=look)) <= self.s.detect)
 
     def same(self, d, e, q, Y=None) -> bool:
         """Whether two departures d, e (n,) differ by less than the sensor's noise and the pose error say a change
@@ -285,7 +289,8 @@ class ChangeModel:
         u = np.asarray(d) - np.asarray(e)
         return bool(u @ (u / self.variance(q, Y, moving=False, friction=False)) <= self.s.detect)
 
-    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None, still=True) -> Verdict:
+    def judge(self, Y, J, phi, q, payloads: Payloads, expected: bool = False, held=None, still=True,
+              look=None) -> Verdict:
         """Posterior over the hypotheses for the level now (equal prior odds, a compound one's the product): noise (and
         bias), a new payload (phi_new ~ payloads, inside its box), an external wrench at the flange (force ~ N(0,
         push_force^2), moment ~ N(0, (push_force push_arm)^2) per axis), back to an earlier payload (no free
@@ -295,10 +300,10 @@ class ChangeModel:
         wrench judged before this one and still acting, if any: a return or a new payload may be a step from it (one
         event: the wrench stays), as well as a step from the reference (the wrench gone with it; for a new payload
         two events at once, COMPOUND); still: the arm was still when that level was held (else a new payload is
-        judged from the reference alone)."""
+        judged from the reference alone); look: the level's samples (default `short`)."""
         s = self.s
-        d = self.mean(s.short) - self.reference.level
-        V = self.covariance(q, Y)
+        d = self.mean(look or s.short) - self.reference.level
+        V = self.covariance(q, Y, look=look)
         fV = cholesky(V)
         logs = {"noise": gaussian_log_pdf(d, V, fV)}
         K = self.compensated @ Y.T                                 # nothing changed: the compensated payload,

@@ -192,7 +192,7 @@ class RME(WindowEstimator):
                 return self._owed()          # (what the compensation leaves is its own error, over the whole
                 #                                  window: no other change, no push, inside it)
             if moving:
-                return                       # on its way somewhere: not yet a departure, not quiet either
+                return self._quick_return(q, Y, J)   # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
             if self._still >= 2 * S and k % S == 0 and self._refine is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
@@ -221,13 +221,32 @@ class RME(WindowEstimator):
         if not self._decided_on(v, Y, young) or (moving and not (v.best == "payload" or (
                 v.best == "back" and m.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under),
                                                 q, Y)))):
-            return              # undecided; or the level still moves, when only a payload whose mass the data pin
-                                # down (below) or a return the level matches within the noise alone is informed
-                                # by the data rather than by the hypotheses' prior volumes
+            return None if not moving else self._quick_return(q, Y, J)
+            #                   undecided; or the level still moves, when only a payload whose mass the data pin
+            #                   down (below) or a return the level matches within the noise alone is informed
+            #                   by the data rather than by the hypotheses' prior volumes
         self._act(v, q, Y, young)
         if v.best == "wrench" and (self._still >= S or not young):   # acted on, not moving (friction allowed),
             self._dep.held, self._dep.still = v.d, self._still >= S   # and with the arm moving older than patience:
             #                                  held, a return may step from it (the arm still: a payload too)
+
+    def _quick_return(self, q, Y, J):
+        """A level still on its way, judged on the newest short / 2 samples alone: a return to an earlier payload
+        (no free parameter to estimate) is made when that shorter level has departed, the return is the most
+        probable and decided on (as young), and the shorter level matches it within the noise alone."""
+        m, s = self.model, self.settings
+        if not self.payloads.earlier and not np.any(self._phi):
+            return
+        L = s.changes.short // 2
+        if m.departure(q, Y, look=L) <= s.changes.detect:
+            return
+        v = m.judge(Y, J, self._phi, q, self.payloads, expected=self._k < self._expected, held=self._dep.held,
+                    still=self._dep.still, look=L)
+        if v.best != "back" or not self._decided_on(v, Y, True) or not m.explains(
+                Y @ (v.phi - self._phi) + (0 if v.under is None else v.under), q, Y, look=L):
+            return
+        self.verdicts.append((self._k / s.rate, v))
+        self._act(v, q, Y, True)
 
     def _decided_on(self, v, Y, young: bool) -> bool:
         """Whether the most probable hypothesis of v is acted on now. A compensation's change (a payload, a return)
