@@ -218,10 +218,9 @@ class RME(WindowEstimator):
         young = max(k - self._dep.since, k - self._dep.best_since) < s.changes.patience * s.rate   # (a level
         #   younger than that may still change; a level drifting with friction on an arm that keeps moving is never
         #   steady, yet a hypothesis the most probable for that long has had the evidence waiting would add)
-        if not self._decided_on(v, Y, young) or (moving and not (v.best == "payload" or (
-                v.best == "back" and m.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under),
-                                                q, Y)))):
-            return None if not moving else self._quick_return(q, Y, J)
+        if not self._decided_on(v, Y, young) or (moving and not (
+                v.best == "payload" or (v.best == "back" and self._is_return(v, q, Y)))):
+            return self._quick_return(q, Y, J) if moving else None
             #                   undecided; or the level still moves, when only a payload whose mass the data pin
             #                   down (below) or a return the level matches within the noise alone is informed
             #                   by the data rather than by the hypotheses' prior volumes
@@ -242,11 +241,15 @@ class RME(WindowEstimator):
             return
         v = m.judge(Y, J, self._phi, q, self.payloads, expected=self._k < self._expected, held=self._dep.held,
                     still=self._dep.still, look=L)
-        if v.best != "back" or not self._decided_on(v, Y, True) or not m.explains(
-                Y @ (v.phi - self._phi) + (0 if v.under is None else v.under), q, Y, look=L):
+        if v.best != "back" or not self._decided_on(v, Y, True) or not self._is_return(v, q, Y, look=L):
             return
         self.verdicts.append((self._k / s.rate, v))
         self._act(v, q, Y, True)
+
+    def _is_return(self, v, q, Y, look=None) -> bool:
+        """Whether the level (of `look` samples) is the return v judged, within the noise alone: the earlier
+        payload's torque less the compensation's, plus the held wrench's level it steps from, if any."""
+        return self.model.explains(Y @ (v.phi - self._phi) + (0 if v.under is None else v.under), q, Y, look=look)
 
     def _decided_on(self, v, Y, young: bool) -> bool:
         """Whether the most probable hypothesis of v is acted on now. A compensation's change (a payload, a return)
