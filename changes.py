@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf, dpotrs
 from scipy.special import log_ndtr
 
 import checks
@@ -140,19 +140,28 @@ class Payloads:
 
 
 def cholesky(C):
-    """cho_factor of C (n, n), symmetric positive semi-definite: a jitter of 1e-12 of its trace where rounding (a
-    wrench's variance 1e8 times the noise's) leaves it indefinite; the 1 kHz loop never raises for it."""
-    try:
-        return cho_factor(C, lower=True, check_finite=False)
-    except np.linalg.LinAlgError:
-        return cho_factor(C + (1e-12 * np.trace(C) + 1e-300) * np.eye(len(C)), lower=True, check_finite=False)
+    """The lower Cholesky factor (n, n) of C (n, n), symmetric positive semi-definite (LAPACK's dpotrf, called
+    directly: the judgement factors a dozen 7 x 7 matrices, where SciPy's checking wrappers cost more than the
+    arithmetic), with a jitter of 1e-12 of its trace where rounding (a wrench's variance 1e8 times the noise's)
+    leaves it indefinite; the 1 kHz loop never raises for it."""
+    L, info = dpotrf(C, lower=1, clean=1)
+    if info != 0:
+        L, info = dpotrf(C + (1e-12 * np.trace(C) + 1e-300) * np.eye(len(C)), lower=1, clean=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"covariance not positive definite even with a jitter (dpotrf info {info})")
+    return L
 
 
-def gaussian_log_pdf(x, C, f=None) -> float:
-    """log N(x; 0, C) for x (n,), C (n, n) positive definite (f: its `cholesky`, if already factored)."""
-    f = cholesky(C) if f is None else f
-    return float(-0.5 * x @ cho_solve(f, x, check_finite=False) - np.log(np.diag(f[0])).sum()
-                 - 0.5 * len(x) * math.log(2 * math.pi))
+def solve(L, b):
+    """C^-1 b for b (n,) or (n, k), L C's `cholesky` factor (LAPACK's dpotrs)."""
+    x, info = dpotrs(L, b, lower=1)
+    return x
+
+
+def gaussian_log_pdf(x, C, L=None) -> float:
+    """log N(x; 0, C) for x (n,), C (n, n) positive definite (L: its `cholesky` factor, if already factored)."""
+    L = cholesky(C) if L is None else L
+    return float(-0.5 * x @ solve(L, x) - np.log(np.diag(L)).sum() - 0.5 * len(x) * math.log(2 * math.pi))
 
 
 class ChangeModel:
@@ -307,8 +316,8 @@ class ChangeModel:
         fV = cholesky(V)
         logs = {"noise": gaussian_log_pdf(d, V, fV)}
         K = self.compensated @ Y.T                                 # nothing changed: the compensated payload,
-        kept = phi + K @ cho_solve(fV, d, check_finite=False)     #   phi ~ N(phi_hat, cov), seen through d
-        kept_cov = self.compensated - K @ cho_solve(fV, K.T, check_finite=False)
+        kept = phi + K @ solve(fV, d)     #   phi ~ N(phi_hat, cov), seen through d
+        kept_cov = self.compensated - K @ solve(fV, K.T)
         held = None if held is None else np.asarray(held, dtype=float)
         steps = [(d, 0.0, None)] if held is None or not still else [(d, COMPOUND, None), (d - held, 0.0, held)]
         log, new, cov, odds, under = max((self._payload(x, Y, V, phi, payloads) + (o, u) for x, o, u in steps),
@@ -357,9 +366,9 @@ class ChangeModel:
         f = cholesky(Y @ P @ Y.T + V)
         e = e - Y @ (payloads.mean - phi)
         K = P @ Y.T
-        new = payloads.mean + K @ cho_solve(f, e, check_finite=False)            # posterior of phi_new
-        cov = P - K @ cho_solve(f, K.T, check_finite=False)
-        log = float(-0.5 * e @ cho_solve(f, e, check_finite=False) - np.log(np.diag(f[0])).sum()
+        new = payloads.mean + K @ solve(f, e)            # posterior of phi_new
+        cov = P - K @ solve(f, K.T)
+        log = float(-0.5 * e @ solve(f, e) - np.log(np.diag(f)).sum()
                     - 0.5 * self.n * math.log(2 * math.pi)) + self._box(new[0], cov[0, 0], payloads) \
             - self._box(payloads.mean[0], P[0, 0], payloads)
         if new[0] >= 0.1 and np.abs(new[1:]).max() > payloads.max_com * new[0]:

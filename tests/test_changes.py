@@ -325,7 +325,7 @@ def test_a_covariance_rounding_makes_indefinite_is_factored_with_a_jitter():
     C -= 1e-3 * np.eye(N) * np.abs(np.linalg.eigvalsh(C)).max() * 1e-12
     x = rng.normal(size=N)
     assert np.isfinite(gaussian_log_pdf(x, C))
-    assert cholesky(np.eye(N))[0][0, 0] == 1.0
+    assert cholesky(np.eye(N))[0, 0] == 1.0
     A = rng.normal(size=(N, N))
     good = A @ A.T + np.eye(N)
     assert gaussian_log_pdf(x, good) == pytest.approx(multivariate_normal(np.zeros(N), good).logpdf(x), rel=1e-12)
