@@ -52,6 +52,7 @@ def timing(table: bool = True) -> dict:
     est = RME(robot, rng=np.random.default_rng(0))
     z = np.zeros(n)
     rows["RME.update: one 1 kHz sample, no detection"] = median_us(lambda: est.update(Q_READY, z, z), 3000)
+    rows["RME: one judgement of a departure (changes.ChangeModel.judge)"] = _judgement_us(robot, phi)
     windows = [simulated_window(np.array(th), np.random.default_rng(i))[1:] for i, th in enumerate(TABLE5)]
     rows["RME.estimate: network + VI, 200-sample window (Table 5)"] = float(np.median(
         [est.estimate(qw, tau, referred=True).seconds * 1e6 for tau, qw in windows * 20]))
@@ -124,6 +125,21 @@ def cpic_benchmark(seconds=0.6, repeats=7) -> dict:
             "step_median_us": med(step_us), "step_p99_us": float(np.percentile(step_us, 99)),
             "model_terms_median_us": med(model_us),
             "solve_qp_median_best_us": med(qp_us.min(axis=0)), "step_median_best_us": med(step_us.min(axis=0))}
+
+
+def _judgement_us(robot, phi) -> float:
+    """Median microseconds of one judgement of what changed: a reference at rest at the ready pose, the level stepped
+    by the torque of the payload phi (4,), two earlier payloads to return to."""
+    est, z = RME(robot, rng=np.random.default_rng(0)), np.zeros(robot.n)
+    for _ in range(2 * est.settings.changes.short + 5):
+        est.update(Q_READY, z, z)                                      # the first level: the reference
+    _, R, J = robot.kinematics(Q_READY)
+    Y = robot.payload_regressor_from(J, R)
+    for _ in range(est.settings.changes.short):
+        est.model.push(Y @ phi, z)
+    for earlier in ([0.5, 0.0, 0.0, 0.02], [1.5, 0.01, 0.0, 0.1]):
+        est.payloads.remember(phi_of(earlier), 1e-4 * np.eye(4))
+    return median_us(lambda: est.model.judge(Y, J, np.zeros(4), Q_READY, est.payloads), 500)
 
 
 def detector_benchmark(episodes=8, seed=0) -> dict:
