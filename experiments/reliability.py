@@ -213,27 +213,35 @@ def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
 
 def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One change over its interval [t, t_end): compensated once rested (None: never rested), the time to the right
-    mass for good (None: wrong at the interval's end), the longest calm stretch with the held load uncompensated,
-    and how long the compensation of the load before it was kept after it had gone (removals and swaps), and for a
-    change with a push over it, after the end of the pushes over it (a removal inside a push is a wrench's change
-    until the push ends: its torques cannot tell them apart)."""
+    mass for good (None: wrong at the interval's end; if it was right when a push that begins after the change
+    began, up to that push: what the compensation does under it is the push's), the longest calm stretch with the
+    held load uncompensated, and how long the compensation of the load before it was kept after it had gone
+    (removals and swaps; if it was left before such a push, a reading like it under the push is the push's), and
+    for a change with a push over it, after the end of the pushes over it (a removal inside a push is a wrench's
+    change until the push ends: its torques cannot tell them apart)."""
     t, dt, m_hat = ctx["t"], ctx["dt"], ctx["m_hat"]
     i0, i1 = _index(t, c["t"]), _index(t, t_end)
     right = ctx["right"][i0:i1]
     rested = np.flatnonzero(_run_length(ctx["quiet"][i0:i1]) * dt >= cfg.rest_for - 1e-9)   # calm since the change
-    wrong = np.flatnonzero(~right)
-    if right[-1]:
+    later = [s for s, _, _ in pushes if c["t"] + cfg.pushed_within <= s < t_end]   # a push after the change: what
+    cut = _index(t, min(later)) - i0 if later else i1 - i0    # the compensation does under it is scored as that
+    #                                                           push's own, once the change was right before it
+    upto = cut if cut > 0 and right[cut - 1] else len(right)
+    wrong = np.flatnonzero(~right[:upto])
+    if right[upto - 1]:
         to_right = 0.0 if not len(wrong) else float(t[i0 + wrong[-1] + 1] - c["t"])
     else:
         to_right = None
     ignored = float(_longest_run(ctx["calm"][i0:i1] & ~right) * dt) if c["m"] > 0 else None
     kept = None
+    ends = _pushes_over(pushes, c["t"], cfg.pushed_within)
     if c["kind"] != "attach":
         old = np.abs(m_hat[i0:i1] - m0) <= tolerance(m0, cfg)
         new = np.abs(m_hat[i0:i1] - c["m"]) <= tolerance(c["m"], cfg)
-        gone = np.flatnonzero(old & ~new)
+        if cut > 0 and not old[cut - 1]:        # (a reading like the old load under that push, the old one left
+            old = old[:cut]                     #   before it: the push's compensation, not the old load kept)
+        gone = np.flatnonzero(old & ~new[:len(old)])
         kept = float(t[i0 + gone[-1]] + dt - c["t"]) if len(gone) else 0.0
-    ends = _pushes_over(pushes, c["t"], cfg.pushed_within)
     pushed, over = bool(ends), max(ends, default=c["t"])   # (the end of the pushes over the change)
     return dict(t=c["t"], m=c["m"], m_before=m0, kind=c["kind"], pushed=pushed,
                 compensated=None if not len(rested) else bool(right[rested[-1]]),
@@ -253,7 +261,8 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One push [s, e): a sample is the push's compensation if the compensated mass has moved from the one before
     the push by more than the tolerance, is off the true mass by more than the tolerance, and further off it than
     the one before (no load change warrants it). Compensated: such a sample in [s, e), or in [e, e + after_push)
-    with no other push acting (a detection's lag; a push then acting owns it), up to the next change (from s on: a
+    with no other push acting or let go since e (a detection's or a withdrawal's lag: the push acting, or the one
+    let go last, owns it), up to the next change (from s on: a
     change's compensation is scored as its own) or push; outlived: the last such sample, less the end of the pushes
     acting at e (its own or a longer one under which it began or ended: until then the compensation may be theirs);
     rise (presses alone: no other push or change from s to the end of the release window, else None): the end
@@ -273,9 +282,9 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     own = (np.abs(h - ref) > tolerance(ref, cfg)) & ~right[k_s:k_end] & (np.abs(h - m) > np.abs(ref - m))
     hit = np.flatnonzero(own)
     th = t[k_s + hit]
-    other = np.zeros(len(th), dtype=bool)                  # another push acting at the sample
-    for q in ep["pushes"]:
-        other |= (q is not push) & (th >= q[0]) & (th < q[0] + q[2])
+    other = np.zeros(len(th), dtype=bool)                  # another push acting at the sample, or let go after
+    for q in ep["pushes"]:                                 #   this one and within after_push of it (its lag)
+        other |= (q is not push) & (th >= q[0]) & (th < q[0] + q[2] + (cfg.after_push if q[0] + q[2] > e else 0.0))
     during = bool(np.any(th < e) or np.any((th < e + cfg.after_push) & ~other))
     outlived = max(0.0, float(t[k_s + hit[-1]] + ctx["dt"] - last)) if len(hit) else 0.0
     kind, until = _push_class(force, cfg), e + cfg.release_window
