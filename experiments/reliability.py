@@ -238,8 +238,8 @@ def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: Reli
     if c["kind"] != "attach":
         old = np.abs(m_hat[i0:i1] - m0) <= tolerance(m0, cfg)
         new = np.abs(m_hat[i0:i1] - c["m"]) <= tolerance(c["m"], cfg)
-        if cut > 0 and not old[cut - 1]:        # (a reading like the old load under that push, the old one left
-            old = old[:cut]                     #   before it: the push's compensation, not the old load kept)
+        if cut > 0 and not old[cut - 1]:        # (a reading like the load before under that push, once it was left
+            old = old[:cut]                     #   before it: the push's compensation, not that load kept)
         gone = np.flatnonzero(old & ~new[:len(old)])
         kept = float(t[i0 + gone[-1]] + dt - c["t"]) if len(gone) else 0.0
     pushed, over = bool(ends), max(ends, default=c["t"])   # (the end of the pushes over the change)

@@ -200,7 +200,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
 
 def test_a_reading_under_a_later_push_is_that_push_s_not_the_change_s_nor_an_earlier_push_s():
     cfg = ReliabilityConfig()
-    # 2 kg swapped for 0.5 kg at 1.0 s, read right from 1.3 s; a press 2.0-2.3 s read as 2.0 kg (like the old load)
+    # 2 kg swapped for 0.5 kg at 1.0 s, read right from 1.3 s; a press 2.0-2.3 s read as 2.0 kg (like the load before)
     # from 2.05 s until 2.35 s: the press's compensation, withdrawn 50 ms after its release; the swap was right and the
     # old load left 0.7 s before the press began
     swap = _trace(4.0, [(0.0, 1.3, 2.0), (1.3, 2.05, 0.5), (2.05, 2.35, 2.0), (2.35, 4.0, 0.5)])
@@ -213,7 +213,7 @@ def test_a_reading_under_a_later_push_is_that_push_s_not_the_change_s_nor_an_ear
     changed, (press,) = s["changes"][1], s["pushes"]
     assert changed["kept_s"] == pytest.approx(0.3) and changed["to_right_s"] == pytest.approx(0.3)
     assert press["compensated"] and press["outlived_s"] == pytest.approx(0.05)
-    # the old load never left before the press: kept through it, and the change right only after it
+    # the load before never left before the press: kept through it, and the change right only after it
     held = _trace(4.0, [(0.0, 2.35, 2.0), (2.35, 4.0, 0.5)])
     held.theta[:] = swap.theta
     changed = score(held, ep, cfg)["changes"][1]
