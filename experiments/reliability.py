@@ -213,22 +213,29 @@ def score(rec, ep: dict, cfg: ReliabilityConfig) -> dict:
 
 def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: ReliabilityConfig) -> dict:
     """One change over its interval [t, t_end): compensated once rested (None: never rested), the time to the right
-    mass for good (None: wrong at the interval's end; if it was right when a push that begins after the change
-    began, up to that push: what the compensation does under it is the push's), the longest calm stretch with the
-    held load uncompensated, and how long the compensation of the load before it was kept after it had gone
-    (removals and swaps; if it was left before such a push, a reading like it under the push is the push's), and
-    for a change with a push over it, after the end of the pushes over it (a removal inside a push is a wrench's
-    change until the push ends: its torques cannot tell them apart)."""
+    mass for good (None: wrong at the interval's end), the longest calm stretch with the held load uncompensated, how
+    long the compensation of the load before it was kept after it had gone (removals and swaps), and for a change
+    with a push over it, after the end of the pushes over it (a removal inside a push is a wrench's change until the
+    push ends: its torques cannot tell them apart). A push that begins `pushed_within` or more after the change, when
+    the compensation was right (for the time to the right mass) or had left the load before (for how long that was
+    kept), owns the compensation from its start to after_push past its end: a reading then (a press read as a load)
+    is scored as the push's, not the change's; the samples after it count again."""
     t, dt, m_hat = ctx["t"], ctx["dt"], ctx["m_hat"]
     i0, i1 = _index(t, c["t"]), _index(t, t_end)
     right = ctx["right"][i0:i1]
     rested = np.flatnonzero(_run_length(ctx["quiet"][i0:i1]) * dt >= cfg.rest_for - 1e-9)   # calm since the change
-    later = [s for s, _, _ in pushes if c["t"] + cfg.pushed_within <= s < t_end]   # a push after the change: what
-    cut = _index(t, min(later)) - i0 if later else i1 - i0    # the compensation does under it is scored as that
-    #                                                           push's own, once the change was right before it
-    upto = cut if cut > 0 and right[cut - 1] else len(right)
-    wrong = np.flatnonzero(~right[:upto])
-    if right[upto - 1]:
+    spans = [(_index(t, s) - i0, _index(t, s + d + cfg.after_push) - i0)       # the later pushes, with their lag
+             for s, _, d in pushes if c["t"] + cfg.pushed_within <= s < t_end]
+
+    def owned(ok):
+        """The samples (bool, over the interval) of a later push that began with ok true at the sample before."""
+        x = np.zeros(len(ok), dtype=bool)
+        for a, b in spans:
+            x[a:b] |= bool(ok[a - 1])
+        return x
+    skip = owned(right)
+    wrong = np.flatnonzero(~right & ~skip)
+    if right[np.flatnonzero(~skip)[-1]]:          # (the first sample is never a later push's)
         to_right = 0.0 if not len(wrong) else float(t[i0 + wrong[-1] + 1] - c["t"])
     else:
         to_right = None
@@ -238,9 +245,7 @@ def _score_change(c: dict, m0: float, t_end: float, pushes, ctx: dict, cfg: Reli
     if c["kind"] != "attach":
         old = np.abs(m_hat[i0:i1] - m0) <= tolerance(m0, cfg)
         new = np.abs(m_hat[i0:i1] - c["m"]) <= tolerance(c["m"], cfg)
-        if cut > 0 and not old[cut - 1]:        # (a reading like the load before under that push, once it was left
-            old = old[:cut]                     #   before it: the push's compensation, not that load kept)
-        gone = np.flatnonzero(old & ~new[:len(old)])
+        gone = np.flatnonzero(old & ~new & ~owned(~old))
         kept = float(t[i0 + gone[-1]] + dt - c["t"]) if len(gone) else 0.0
     pushed, over = bool(ends), max(ends, default=c["t"])   # (the end of the pushes over the change)
     return dict(t=c["t"], m=c["m"], m_before=m0, kind=c["kind"], pushed=pushed,

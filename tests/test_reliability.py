@@ -131,7 +131,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     cfg = ReliabilityConfig()
     # 1 kg at 1 s (read 0.8 kg from 1.4 s, 1 kg from 1.6 s), 2 kg at 3 s (1 kg kept until 4.7 s), removed at 5.5 s
     # (withdrawn at 5.6 s); a sideways push 6.1-6.6 s, read as 0.5 kg from 6.2 s to 7.0 s, the arm moving 6.1-7.2 s
-    # (the removal right from 5.6 s until the push began: the reading under the push is the push's)
+    # (the removal right from 5.6 s until the push began; its reading outlives the push's 0.3 s lag: the removal's too)
     changes = [dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach"), dict(t=3.0, m=2.0, r=np.zeros(3), kind="swap"),
                dict(t=5.5, m=0.0, r=np.zeros(3), kind="removal")]
     rec = _trace(8.0, [(1.4, 1.6, 0.8), (1.6, 4.7, 1.0), (4.7, 5.6, 2.0), (6.2, 7.0, 0.5)], moving=[(6.1, 7.2)])
@@ -141,7 +141,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     s = score(rec, ep, cfg)
     attach, swap, removal = s["changes"]
     assert [c["compensated"] for c in s["changes"]] == [True, True, True]
-    assert [c["to_right_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, 0.1], abs=1e-9)
+    assert [c["to_right_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, 1.5], abs=1e-9)
     assert [c["ignored_s"] for c in s["changes"]] == pytest.approx([0.6, 1.7, None], abs=1e-9)
     assert (attach["kept_s"], swap["kept_s"], removal["kept_s"]) == (None, pytest.approx(1.7), pytest.approx(0.1))
     assert [c["kept_after_push_s"] for c in s["changes"]] == [None, None, None]   # no push over them
@@ -198,7 +198,7 @@ def test_the_scores_of_hand_made_traces_are_the_known_ones():
     assert score(rec, ep, cfg)["changes"][1]["compensated"] is None
 
 
-def test_a_reading_under_a_later_push_is_that_push_s_not_the_change_s_nor_an_earlier_push_s():
+def test_a_reading_under_a_later_push_is_that_push_s_not_the_change_s_nor_one_let_go_before_it_s():
     cfg = ReliabilityConfig()
     # 2 kg swapped for 0.5 kg at 1.0 s, read right from 1.3 s; a press 2.0-2.3 s read as 2.0 kg (like the load before)
     # from 2.05 s until 2.35 s: the press's compensation, withdrawn 50 ms after its release; the swap was right and the
@@ -218,6 +218,18 @@ def test_a_reading_under_a_later_push_is_that_push_s_not_the_change_s_nor_an_ear
     held.theta[:] = swap.theta
     changed = score(held, ep, cfg)["changes"][1]
     assert changed["kept_s"] == pytest.approx(1.35) and changed["to_right_s"] == pytest.approx(1.35)
+    # right from 1.2 s after an attach, an upward push 2.0-2.3 s, then 0.3 kg read to the end: wrong after the push's
+    # lag, so never right for good (the push owns only its own span and lag)
+    up = _trace(4.0, [(1.2, 2.4, 1.0), (2.4, 4.0, 0.3)])
+    up.theta[up.t >= 1.0 - 1e-9, 0] = 1.0
+    attach = score(up, dict(changes=[dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach")],
+                            pushes=[(2.0, np.array([0.0, 0.0, 20.0]), 0.3)]), cfg)["changes"][0]
+    assert attach["to_right_s"] is None
+    up.theta_hat[up.t >= 2.45 - 1e-9, 0] = 1.0                     # 0.3 kg read 2.4-2.45 s only, within the lag
+    up.theta_hat[(up.t >= 2.1 - 1e-9) & (up.t < 2.4 - 1e-9), 0] = 0.3   #   and under the push from 2.1 s: its own
+    assert score(up, dict(changes=[dict(t=1.0, m=1.0, r=np.zeros(3), kind="attach")],
+                          pushes=[(2.0, np.array([0.0, 0.0, 20.0]), 0.3)]), cfg)["changes"][0]["to_right_s"] == \
+        pytest.approx(0.2)
     # a sideways push 1.3-1.8 s inside a press 1.0-2.0 s, the press read as 1.5 kg from 1.2 s and as 2.0 kg from
     # 1.9 s to 2.05 s (50 ms after the press's release): the press's reading and its withdrawal's lag, not the
     # sideways push's (its own window after its end has the press acting, then the press let go later than it)
