@@ -143,7 +143,8 @@ def cholesky(C):
     """The lower Cholesky factor (n, n) of C (n, n), symmetric positive semi-definite (LAPACK's dpotrf, called
     directly: the judgement factors a dozen 7 x 7 matrices, where SciPy's checking wrappers cost more than the
     arithmetic), with a jitter of 1e-12 of its trace where rounding (a wrench's variance 1e8 times the noise's)
-    leaves it indefinite; the 1 kHz loop never raises for it."""
+    leaves it indefinite, so that the 1 kHz loop never raises for rounding (a matrix the jitter does not make
+    positive definite either raises LinAlgError)."""
     L, info = dpotrf(C, lower=1, clean=1)
     if info != 0:
         L, info = dpotrf(C + (1e-12 * np.trace(C) + 1e-300) * np.eye(len(C)), lower=1, clean=1)
@@ -153,9 +154,9 @@ def cholesky(C):
 
 
 def solve(L, b):
-    """C^-1 b for b (n,) or (n, k), L C's `cholesky` factor (LAPACK's dpotrs)."""
-    x, info = dpotrs(L, b, lower=1)
-    return x
+    """C^-1 b for b (n,) or (n, k), L C's `cholesky` factor (LAPACK's dpotrs; its only failure, a malformed argument,
+    cannot arise from `cholesky`'s factor)."""
+    return dpotrs(L, b, lower=1)[0]
 
 
 def gaussian_log_pdf(x, C, L=None) -> float:
@@ -316,7 +317,7 @@ class ChangeModel:
         fV = cholesky(V)
         logs = {"noise": gaussian_log_pdf(d, V, fV)}
         K = self.compensated @ Y.T                                 # nothing changed: the compensated payload,
-        kept = phi + K @ solve(fV, d)     #   phi ~ N(phi_hat, cov), seen through d
+        kept = phi + K @ solve(fV, d)                              #   phi ~ N(phi_hat, cov), seen through d
         kept_cov = self.compensated - K @ solve(fV, K.T)
         held = None if held is None else np.asarray(held, dtype=float)
         steps = [(d, 0.0, None)] if held is None or not still else [(d, COMPOUND, None), (d - held, 0.0, held)]
@@ -366,7 +367,7 @@ class ChangeModel:
         f = cholesky(Y @ P @ Y.T + V)
         e = e - Y @ (payloads.mean - phi)
         K = P @ Y.T
-        new = payloads.mean + K @ solve(f, e)            # posterior of phi_new
+        new = payloads.mean + K @ solve(f, e)                                    # posterior of phi_new
         cov = P - K @ solve(f, K.T)
         log = float(-0.5 * e @ solve(f, e) - np.log(np.diag(f)).sum()
                     - 0.5 * self.n * math.log(2 * math.pi)) + self._box(new[0], cov[0, 0], payloads) \
