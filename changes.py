@@ -367,9 +367,10 @@ class ChangeModel:
         f = cholesky(Y @ P @ Y.T + V)
         e = e - Y @ (payloads.mean - phi)
         K = P @ Y.T
-        new = payloads.mean + K @ solve(f, e)                                    # posterior of phi_new
+        z = solve(f, e)
+        new = payloads.mean + K @ z                                              # posterior of phi_new
         cov = P - K @ solve(f, K.T)
-        log = float(-0.5 * e @ solve(f, e) - np.log(np.diag(f)).sum()
+        log = float(-0.5 * e @ z - np.log(np.diag(f)).sum()
                     - 0.5 * self.n * math.log(2 * math.pi)) + self._box(new[0], cov[0, 0], payloads) \
             - self._box(payloads.mean[0], P[0, 0], payloads)
         if new[0] >= 0.1 and np.abs(new[1:]).max() > payloads.max_com * new[0]:

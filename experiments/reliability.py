@@ -267,11 +267,10 @@ def _score_push(push, ep: dict, rec, ctx: dict, cfg: ReliabilityConfig) -> dict:
     the push by more than the tolerance, is off the true mass by more than the tolerance, and further off it than
     the one before (no load change warrants it). Compensated: such a sample in [s, e), or in [e, e + after_push)
     with no other push acting or let go since e (a detection's or a withdrawal's lag: the push acting, or the one
-    let go last, owns it), up to the next change (from s on: a
-    change's compensation is scored as its own) or push; outlived: the last such sample, less the end of the pushes
-    acting at e (its own or a longer one under which it began or ended: until then the compensation may be theirs);
-    rise (presses alone: no other push or change from s to the end of the release window, else None): the end
-    effector's height above its target after e."""
+    let go last, owns it), up to the next change (from s on: a change's compensation is scored as its own) or push;
+    outlived: the last such sample, less the end of the pushes acting at e (its own or a longer one under which it
+    began or ended: until then the compensation may be theirs); rise (presses alone: no other push or change from s
+    to the end of the release window, else None): the end effector's height above its target after e."""
     s, force, d = push
     e = s + d
     t, m_hat, right = ctx["t"], ctx["m_hat"], ctx["right"]
