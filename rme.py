@@ -269,10 +269,9 @@ class RME(WindowEstimator):
         counted and left alone."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         if v.best == "payload":
-            if v.mass_std > max(0.05 * v.phi[0], 0.025) and young and m.arriving() > s.changes.detect:
-                return                       # its mass not yet known to half the compensation's tolerance (10 %
-                #                              or 50 g) and the level may still be on its way (its move beyond the
-                #                              friction's change: changes.ChangeModel.arriving)
+            if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
+                return                       # its mass not yet known to half the compensation's tolerance
+                                             # (10 % or 50 g): the level still moves with the arm
             if self._dep.refused is not None and m.same(v.d, self._dep.refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
             W = s.detection_window

@@ -344,11 +344,10 @@ def test_a_return_to_a_payload_whose_estimate_at_rest_was_owed_owes_it_again():
 
 
 def test_a_load_hung_on_an_arm_moving_steadily_is_first_estimated_once_its_level_has_arrived():
-    """Synthetic stream at the ready pose with the joints moving at a steady 0.2-0.4 rad/s (their friction's size
-    hides a level on its way): 0.5-2 kg hung on. The first estimate waits until the payload's mass is pinned down or
-    the level has arrived (its move within the noise and the friction's change), and is right (within 10 %) within
-    0.5 s of the change; one made as soon as the level moves less than the friction's size would read a level still
-    on its way (23-32 % low, on these draws)."""
+    """Synthetic stream at the ready pose with the joints moving at a steady 0.2-0.4 rad/s (the model allows their
+    friction, so a level on its way looks steady): 0.5-2 kg hung on. The first estimate waits until the payload's
+    mass is pinned down, and is right (within 10 %) within 0.5 s of the change; one made as soon as the level looks
+    steady would read a level still on its way (23-32 % low, on these draws)."""
     robot, draws = Robot.panda(), np.random.default_rng(2113)
     for _ in range(3):
         m, r = draws.uniform(0.5, 2.0), draws.uniform(-0.05, 0.05, 3)
