@@ -174,7 +174,9 @@ class ChangeModel:
     def __init__(self, settings: ChangeSettings, n: int, keep: int = 500, pose_bias=None):
         self.s, self.n = settings, n
         self.pose_bias = np.zeros(n) if pose_bias is None else np.asarray(pose_bias, dtype=float)[:n]
-        self._r, self._v, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, |dq|; samples
+        self._r, self._dq, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, dq; samples
+        top = np.array(settings.friction[:n])                   # (`arriving`'s signed friction)
+        self._half, self._gain = top / 2, 2 * np.array(settings.friction_slope[:n]) / top
         self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
         self.reference: Reference | None = None
         self.compensated = np.zeros((4, 4))       # the covariance of phi_hat's error that the level's departure
@@ -185,16 +187,24 @@ class ChangeModel:
     # --- the stream ------------------------------------------------------------------------------
     def push(self, r, dq):
         i = self._k % len(self._r)
-        self._r[i], self._v[i] = r, np.abs(dq)
+        self._r[i], self._dq[i] = r, dq
         self._k += 1
 
-    def mean(self, L: int, back: int = 0, of=None):
-        """Mean (n,) of the L samples ending `back` samples ago (of: the ring, default r)."""
+    def _rows(self, L: int, back: int = 0, of=None):
+        """The L samples (L, n) ending `back` samples ago (of: the ring, default r)."""
         x, N = self._r if of is None else of, len(self._r)
         start = (self._k - back - L) % N
         if start + L <= N:                                          # (the 1 kHz path: a slice, no index array)
-            return x[start:start + L].mean(axis=0)
-        return x[np.arange(start, start + L) % N].mean(axis=0)
+            return x[start:start + L]
+        return x[np.arange(start, start + L) % N]
+
+    def mean(self, L: int, back: int = 0) -> np.ndarray:
+        """Mean (n,) of r over the L samples ending `back` samples ago."""
+        return self._rows(L, back).mean(axis=0)
+
+    def speed(self, L: int) -> np.ndarray:
+        """Each joint's mean speed |dq| (n,) [rad/s] over the last L samples."""
+        return np.abs(self._rows(L, of=self._dq)).mean(axis=0)
 
     def shift(self, d):
         """The compensation changed by d (n,): every sample held is re-expressed as its residual under it."""
@@ -210,7 +220,7 @@ class ChangeModel:
         reference level follows the bias's slow drift (the level of the last 2 short samples, the pose kept)."""
         S = self.s.short
         self.reference.level, self.reference.k, self.reference.held = self.mean(2 * S), self._k, self.error.copy()
-        self.reference.friction = self.friction(self.mean(S, of=self._v))
+        self.reference.friction = self.friction(self.speed(S))
         u = self.mean(S) - self.mean(S, S)
         floor = np.array(self.s.rest_noise[:self.n]) ** 2 / 4
         self.noise = np.maximum(0.99 * self.noise + 0.01 * u * u / 2, floor)
@@ -218,7 +228,7 @@ class ChangeModel:
     def set_reference(self, q, gradient):
         """The level of the last 2 short samples, at pose q (n,), becomes the reference (gradient (n, n): dG/dq)."""
         S = self.s.short
-        self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.mean(S, of=self._v)),
+        self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.speed(S)),
                                    np.array(gradient, dtype=float), self._k, self.error.copy())
 
     def covariance(self, q, Y=None, moving=True, friction=True, look=None) -> np.ndarray:
@@ -245,7 +255,7 @@ class ChangeModel:
         for a level of `look` samples (default `short`: a shorter one's noise grows as short / look)."""
         s, ref, S = self.s, self.reference, self.s.short
         L = look or S
-        fric = self.friction(self.mean(S, of=self._v)) ** 2 + ref.friction ** 2 if friction else 0.0
+        fric = self.friction(self.speed(S)) ** 2 + ref.friction ** 2 if friction else 0.0
         moving = (self.mean(L) - self.mean(L, L)) if moving else 0.0  # how far the level moved over the last L
         g, bias = self.carried(q)
         return (1 + S / L) * self.noise + fric + moving * moving + bias + self.inertial, g
@@ -265,7 +275,7 @@ class ChangeModel:
         there, prior_std (4,) the payload prior's) is smaller with the pose's carried error and the reference's
         friction replaced by the friction now."""
         own, g = self._parts(q, moving=False, friction=True)
-        f = self.friction(self.mean(self.s.short, of=self._v)) ** 2
+        f = self.friction(self.speed(self.s.short)) ** 2
         comp, P = np.einsum("ij,jk,ik->i", Y, self.compensated, Y), np.diag(1.0 / np.asarray(prior_std) ** 2)
         held, fresh = (float(np.linalg.inv(Y.T @ (Y / (v + comp)[:, None]) + P)[0, 0])
                        for v in (own + g * g, 2 * self.noise + 2 * f))
@@ -277,8 +287,19 @@ class ChangeModel:
         swinging); without friction's allowance, also while the arm's speed changes (friction and inertia with it)."""
         S = self.s.short
         u = self.mean(S) - self.mean(S, S)
-        f = self.friction(self.mean(2 * S, of=self._v)) if friction else 0.0
+        f = self.friction(self.speed(2 * S)) if friction else 0.0
         return float(u @ (u / (2 * self.noise + 2 * f * f)))
+
+    def arriving(self) -> float:
+        """chi^2 of the level's move over the last `short` samples (of two short means) under the noise and the
+        change of the joints' friction between them (Gaz et al.'s sigmoid, signed: (friction / 2) tanh(2
+        friction_slope dq / friction) per sample, its mean over each): above settings.detect, the level may still be
+        on its way, on an arm moving steadily as well (where the friction's size, `settling`'s allowance, hides it)."""
+        S = self.s.short
+        u = self.mean(S) - self.mean(S, S)
+        f = self._half * np.tanh(self._gain * self._rows(2 * S, of=self._dq))
+        f = f[S:].mean(axis=0) - f[:S].mean(axis=0)
+        return float(u @ (u / (2 * self.noise + f * f)))
 
     def departure(self, q, Y=None, look=None) -> float:
         """chi^2 of the level's departure from the reference under `covariance` (diagonal part); look: the level's

@@ -93,6 +93,8 @@ class RME(WindowEstimator):
         self._refined = False                          #   and whether that window was the full one
         self._quiet = None                             # the sample the level last came to sit at the compensation's
                                                        #   own (None: it does not now)
+        self._own = None                               # the sample since which every judgement found the level the
+                                                       #   compensation's own: quiet, or a departure judged noise
         self._settled = False                          # it has sat there for `patience` since the compensation took
                                                        #   its present value: a state to return to
         self._still = 0                                # samples every joint has been slower than rest_speed
@@ -186,9 +188,11 @@ class RME(WindowEstimator):
         departed = m.departure(q, Y) > s.changes.detect
         quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
         self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
+        if not departed:                     # (a departure: as judged, below)
+            self._own = (k if self._own is None else self._own) if quiet else None
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
         if not departed:
-            if quiet and k - self._quiet >= s.window and self._may_refine(Y, J, q):
+            if quiet and k - self._own >= s.window and self._may_refine(Y, J, q):
                 return self._owed()          # (what the compensation leaves is its own error, over the whole
                 #                                  window: no other change, no push, inside it)
             if moving:
@@ -210,9 +214,13 @@ class RME(WindowEstimator):
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        if v.best in ("noise", "payload") and k - self._dep.since >= s.window and self._may_refine(Y, J, q):
-            return self._owed()              # (not under a wrench; the level steady over the whole window: the
-            #                                  estimate covers what is on the flange now, no change inside it)
+        self._own = (k if self._own is None else self._own) if v.best == "noise" else None
+        if v.best in ("noise", "payload") and k - min(self._dep.since, self._own or k) >= s.window and \
+                self._may_refine(Y, J, q):
+            return self._owed()              # (not under a wrench; the level steady over the whole window, or
+            #                                  the compensation's own throughout it, near the departure's bar as
+            #                                  it creeps while the arm sags: the estimate covers what is on the
+            #                                  flange now, no change inside it)
         if v.best != self._dep.best:
             self._dep.best, self._dep.best_since = v.best, k
         young = max(k - self._dep.since, k - self._dep.best_since) < s.changes.patience * s.rate   # (a level
@@ -269,9 +277,10 @@ class RME(WindowEstimator):
         counted and left alone."""
         m, s, k, S = self.model, self.settings, self._k, self.settings.changes.short
         if v.best == "payload":
-            if v.mass_std > max(0.05 * v.phi[0], 0.025) and young:
-                return                       # its mass not yet known to half the compensation's tolerance
-                                             # (10 % or 50 g): the level still moves with the arm
+            if v.mass_std > max(0.05 * v.phi[0], 0.025) and young and m.arriving() > s.changes.detect:
+                return                       # its mass not yet known to half the compensation's tolerance (10 %
+                #                              or 50 g) and the level may still be on its way (its move beyond the
+                #                              friction's change: changes.ChangeModel.arriving)
             if self._dep.refused is not None and m.same(v.d, self._dep.refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
             W = s.detection_window
@@ -473,7 +482,7 @@ class RME(WindowEstimator):
         elif due.kind not in ("at rest", "correction") and self._settled:
             self.payloads.remember(self._phi, self.model.error, self._refine)   # a state whose level settled
         if due.kind != "at rest":            # (not an estimate in motion the next corrected; one made again at rest
-            self._settled, self._quiet = False, None                      #   is the same state refined)
+            self._settled, self._quiet, self._own = False, None, None     #   is the same state refined)
         m = self.model                       # its error: a window's, referred to the reference level, holds that
         held = np.zeros((4, 4)) if m.reference is None else m.reference.held   # level's error too; an earlier
         own = _phi_cov(theta, due.estimate.cov) if due.phi_cov is None else due.phi_cov   # payload's is its own,

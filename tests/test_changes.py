@@ -7,6 +7,7 @@ import pytest
 from scipy.stats import multivariate_normal
 
 from changes import ChangeModel, ChangeSettings, Payloads, gaussian_log_pdf
+from sim import GAZ_P1, GAZ_P2, GAZ_P3
 from tests.helpers import sensor_bias
 
 G = np.array([0.0, 0.0, -9.81])
@@ -195,6 +196,43 @@ def test_the_noise_is_learned_from_calm_stretches():
         stream(m, rng, [np.zeros(N)] * s.short, noise=true[0] * np.sqrt(s.short))   # means of std 0.02 Nm
         m.learn_noise()
     assert np.sqrt(m.noise) == pytest.approx(true, rel=0.25)
+
+
+def gaz_friction(dq):
+    """Gaz et al. 2019's identified sigmoid friction (n,) [Nm] at joint speeds dq (n,) (the plant's, sim.py): an
+    independent statement of what a moving joint leaves in tau_ext."""
+    p1, p2, p3 = (np.array(p) for p in (GAZ_P1, GAZ_P2, GAZ_P3))
+    return p1 / (1 + np.exp(-p2 * (dq + p3))) - p1 / (1 + np.exp(-p2 * p3))
+
+
+def test_a_level_on_its_way_is_seen_on_an_arm_moving_steadily_and_a_reversal_of_its_joints_is_not_a_move():
+    """An arm moving at a steady 0.2-0.4 rad/s per joint, its friction in the residual: a light payload's torque (0.3-0.6
+    Nm at most) arriving through a 10 ms lag is a level on its way on some tick of its transit (the friction's size,
+    `settling`'s allowance, hides it on most draws); the joints reversing over 30 ms with nothing else changing is
+    not (the change of their friction is allowed as it is)."""
+    rng, s = np.random.default_rng(31), ChangeSettings()
+    hidden = 0
+    for _ in range(20):
+        J, R, Y = arm(rng)
+        dq = rng.uniform(0.2, 0.4, N) * rng.choice([-1.0, 1.0], N)
+        load = Y[:, 0] / np.abs(Y[:, 0]).max() * rng.uniform(0.3, 0.6)   # a light payload: 0.3-0.6 Nm at most
+        m = ChangeModel(s, N)
+        for k in range(300):
+            m.push(gaz_friction(dq) + 0.01 * rng.normal(size=N), dq)
+        seen = settled = False
+        for k in range(2 * s.short):                      # the load's torque through a 10 ms first-order lag
+            m.push(gaz_friction(dq) + load * -np.expm1(-(k + 1) / 10) + 0.01 * rng.normal(size=N), dq)
+            seen, settled = seen or m.arriving() > s.detect, settled or m.settling() > s.detect
+        assert seen
+        hidden += not settled
+        m = ChangeModel(s, N)
+        for k in range(300):
+            m.push(gaz_friction(dq) + 0.01 * rng.normal(size=N), dq)
+        for k in range(4 * s.short):                      # reversed over 30 ms, then steady the other way
+            v = dq * np.clip(1 - 2 * (k + 1) / 30, -1, 1)
+            m.push(gaz_friction(v) + 0.01 * rng.normal(size=N), v)
+            assert m.arriving() <= s.detect, (k, m.arriving())
+    assert hidden >= 10                                   # where `settling` (the friction's size) cannot see it
 
 
 def test_settings_are_checked():

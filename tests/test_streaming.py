@@ -344,10 +344,11 @@ def test_a_return_to_a_payload_whose_estimate_at_rest_was_owed_owes_it_again():
 
 
 def test_a_load_hung_on_an_arm_moving_steadily_is_first_estimated_once_its_level_has_arrived():
-    """Synthetic stream at the ready pose with the joints moving at a steady 0.2-0.4 rad/s (the model allows their
-    friction, so a level on its way looks steady): 0.5-2 kg hung on. The first estimate waits until the payload's
-    mass is pinned down, and is right (within 10 %) within 0.5 s of the change; one made as soon as the level looks
-    steady would read a level still on its way (23-32 % low, on these draws)."""
+    """Synthetic stream at the ready pose with the joints moving at a steady 0.2-0.4 rad/s (their friction's size
+    hides a level on its way): 0.5-2 kg hung on. The first estimate waits until the payload's mass is pinned down or
+    the level has arrived (its move within the noise and the friction's change), and is right (within 10 %) within
+    0.5 s of the change; one made as soon as the level moves less than the friction's size would read a level still
+    on its way (23-32 % low, on these draws)."""
     robot, draws = Robot.panda(), np.random.default_rng(2113)
     for _ in range(3):
         m, r = draws.uniform(0.5, 2.0), draws.uniform(-0.05, 0.05, 3)
@@ -360,6 +361,25 @@ def test_a_load_hung_on_an_arm_moving_steadily_is_first_estimated_once_its_level
         first = [e for e in est.history if e.accepted]
         assert first and first[0].t < 1.5 and within(first[0].mean[0], m), \
             (m, [(e.t, e.kind, e.mean.round(3)) for e in est.history])
+
+
+def test_a_first_estimate_read_before_its_level_arrived_is_made_again_at_rest_wherever_the_rest_sits():
+    """Synthetic stream, the arm still at the ready pose, 0.05 Nm white noise per sample (the noisy plant's): 0.5-2.5
+    kg hung on, 93-99.5 % of its torque for 150 ms (the first estimate reads that), then all of it. Whatever is left
+    after the first estimate, above the departure's bar, below it or on it (then it crosses it from one judgement to
+    the next), the estimate at rest owed for the change is made within 0.75 s and is right within 1 %. Made only once
+    the level stays on one side of the bar for a whole window, it is missed on 2 of these 16 draws (3.4 % low)."""
+    robot, draws = Robot.panda(), np.random.default_rng(1)
+    for i in range(16):
+        m, r, p = draws.uniform(0.5, 2.5), draws.uniform(-0.05, 0.05, 3), draws.uniform(0.93, 0.995)
+        load = robot.payload_torque(Q_READY, np.array([m, *r]))
+        est, noise = RME(robot, weights=None, settings=SYNC, rng=np.random.default_rng(0)), np.random.default_rng(i)
+        for k in range(1900):
+            share = 0.0 if k < 1000 else p if k < 1150 else 1.0
+            est.update(Q_READY, np.zeros(7), share * load + 0.05 * noise.normal(size=7))
+        at_rest = [e for e in est.history if e.kind == "at rest" and e.t > 1.15]
+        assert at_rest and abs(est.theta[0] - m) < 0.01 * m, \
+            (m, p, [(e.t, e.kind, e.mean.round(3)) for e in est.history])
 
 
 @pytest.mark.parametrize("before", [700, 300, 1001, 1002])    # full, partly filled, around a re-basing of the sums
