@@ -94,7 +94,8 @@ class RME(WindowEstimator):
         self._quiet = None                             # the sample the level last came to sit at the compensation's
                                                        #   own (None: it does not now)
         self._own = None                               # the sample since which every judgement found the level the
-                                                       #   compensation's own: quiet, or a departure judged noise
+                                                       #   compensation's own: quiet, or a steady departure judged
+                                                       #   noise
         self._settled = False                          # it has sat there for `patience` since the compensation took
                                                        #   its present value: a state to return to
         self._still = 0                                # samples every joint has been slower than rest_speed
@@ -161,6 +162,8 @@ class RME(WindowEstimator):
                 self.model.set_reference(q, self._gradient(q))
         elif due is None and self._k % 5 == 0 and not self.paused:
             self._step(q, Y, J)
+        elif self.paused:
+            self._own = None                 # (samples not judged: no window over them is the compensation's own)
         due = self._due
         if due is not None and due.job is None and self._k >= due.at:
             self._apply(due, Y, J)
@@ -214,8 +217,9 @@ class RME(WindowEstimator):
         self.verdicts.append((k / s.rate, v))
         if self._dep.since is None or moving or not m.same(v.d, self._dep.level, q, Y):
             self._dep.since, self._dep.level = k, v.d  # the level's age: since it settled where it is now
-        self._own = (k if self._own is None else self._own) if v.best == "noise" else None
-        if v.best in ("noise", "payload") and k - min(self._dep.since, self._own or k) >= s.window and \
+        self._own = (k if self._own is None else self._own) if v.best == "noise" and not moving else None
+        own = k if self._own is None else self._own
+        if v.best in ("noise", "payload") and k - min(self._dep.since, own) >= s.window and \
                 self._may_refine(Y, J, q):
             return self._owed()              # (not under a wrench; the level steady over the whole window, or
             #                                  the compensation's own throughout it, near the departure's bar as
