@@ -175,8 +175,8 @@ class ChangeModel:
         self.s, self.n = settings, n
         self.pose_bias = np.zeros(n) if pose_bias is None else np.asarray(pose_bias, dtype=float)[:n]
         self._r, self._dq, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, dq; samples
-        top = np.array(settings.friction[:n])                   # (`arriving`'s signed friction)
-        self._half, self._gain = top / 2, 2 * np.array(settings.friction_slope[:n]) / top
+        self._top, self._slope = np.array(settings.friction[:n]), np.array(settings.friction_slope[:n])
+        self._half, self._gain = self._top / 2, 2 * self._slope / self._top   # (`arriving`'s signed friction)
         self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
         self.reference: Reference | None = None
         self.compensated = np.zeros((4, 4))       # the covariance of phi_hat's error that the level's departure
@@ -212,8 +212,7 @@ class ChangeModel:
 
     def friction(self, speed) -> np.ndarray:
         """Each joint's friction std (n,) [Nm] at mean joint speeds (n,) [rad/s]: 0 at rest, up to `friction`."""
-        top = np.array(self.s.friction[:self.n])
-        return top * np.tanh(np.array(self.s.friction_slope[:self.n]) * np.asarray(speed) / top)
+        return self._top * np.tanh(self._slope * np.asarray(speed) / self._top)
 
     def learn_noise(self):
         """At rest with nothing changing: the spread of consecutive short means updates the noise (Nm^2, n), and the

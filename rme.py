@@ -191,10 +191,9 @@ class RME(WindowEstimator):
         departed = m.departure(q, Y) > s.changes.detect
         quiet = not (moving or departed)     # (how long the level has sat at the compensation's own)
         self._quiet = (k if self._quiet is None else self._quiet) if quiet else None
-        if not departed:                     # (a departure: as judged, below)
-            self._own = (k if self._own is None else self._own) if quiet else None
         self._settled = self._settled or (quiet and k - self._quiet >= s.changes.patience * s.rate)
-        if not departed:
+        if not departed:                     # (a departure's `_own`: as judged, below)
+            self._own = (k if self._own is None else self._own) if quiet else None
             if quiet and k - self._own >= s.window and self._may_refine(Y, J, q):
                 return self._owed()          # (what the compensation leaves is its own error, over the whole
                 #                                  window: no other change, no push, inside it)
