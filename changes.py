@@ -72,6 +72,8 @@ class Reference:
     k: int = 0                     # samples seen when it was taken (the mean of the 2 short before)
     held: np.ndarray = field(default_factory=lambda: np.zeros((4, 4)))   # the covariance (4, 4) of the compensated
     #                                payload's error e then (ChangeModel.error): the level holds -Y(q) e of it
+    moving: np.ndarray | None = None   # the joints' friction (n,) [Nm] the level holds (ChangeModel.friction_in, its
+    #                                    mean over the level's samples; zeros for a level taken at rest)
 
 
 @dataclass
@@ -176,7 +178,7 @@ class ChangeModel:
         self.pose_bias = np.zeros(n) if pose_bias is None else np.asarray(pose_bias, dtype=float)[:n]
         self._r, self._dq, self._k = np.zeros((keep, n)), np.zeros((keep, n)), 0   # rings of r, dq; samples
         self._top, self._slope = np.array(settings.friction[:n]), np.array(settings.friction_slope[:n])
-        self._half, self._gain = self._top / 2, 2 * self._slope / self._top   # (`arriving`'s signed friction)
+        self._half, self._gain = self._top / 2, 2 * self._slope / self._top   # (the signed friction: friction_in)
         self.noise = np.array(settings.rest_noise, dtype=float)[:n] ** 2          # learned at rest (Nm^2)
         self.reference: Reference | None = None
         self.compensated = np.zeros((4, 4))       # the covariance of phi_hat's error that the level's departure
@@ -219,7 +221,7 @@ class ChangeModel:
         reference level follows the bias's slow drift (the level of the last 2 short samples, the pose kept)."""
         S = self.s.short
         self.reference.level, self.reference.k, self.reference.held = self.mean(2 * S), self._k, self.error.copy()
-        self.reference.friction = self.friction(self.speed(S))
+        self.reference.friction, self.reference.moving = self.friction(self.speed(S)), self._friction_held()
         u = self.mean(S) - self.mean(S, S)
         floor = np.array(self.s.rest_noise[:self.n]) ** 2 / 4
         self.noise = np.maximum(0.99 * self.noise + 0.01 * u * u / 2, floor)
@@ -228,7 +230,18 @@ class ChangeModel:
         """The level of the last 2 short samples, at pose q (n,), becomes the reference (gradient (n, n): dG/dq)."""
         S = self.s.short
         self.reference = Reference(self.mean(2 * S), np.array(q, dtype=float), self.friction(self.speed(S)),
-                                   np.array(gradient, dtype=float), self._k, self.error.copy())
+                                   np.array(gradient, dtype=float), self._k, self.error.copy(), self._friction_held())
+
+    def friction_in(self, dq) -> np.ndarray:
+        """The joints' friction tau_ext holds at velocities dq (n,) or (T, n) [rad/s], its expected value [Nm]:
+        Gaz et al. 2019's sigmoid against the motion, -(friction / 2) tanh(2 friction_slope dq / friction) (the
+        amplitude and slope `friction` uses; Gaz's identified p1 / 2 tanh(p2 dq / 2), its small offset p3 left out;
+        paper sign, as an external torque that resists the motion)."""
+        return -self._half * np.tanh(self._gain * np.asarray(dq))
+
+    def _friction_held(self) -> np.ndarray:
+        """friction_in's mean (n,) over the last 2 short samples: what the level taken of them holds."""
+        return self.friction_in(self._rows(2 * self.s.short, of=self._dq)).mean(axis=0)
 
     def covariance(self, q, Y=None, moving=True, friction=True, look=None) -> np.ndarray:
         """Covariance (n, n) of the level's departure d from the reference with nothing changed: the short mean's
@@ -296,7 +309,7 @@ class ChangeModel:
         on its way, on an arm moving steadily as well (where the friction's size, `settling`'s allowance, hides it)."""
         S = self.s.short
         u = self.mean(S) - self.mean(S, S)
-        f = self._half * np.tanh(self._gain * self._rows(2 * S, of=self._dq))
+        f = self.friction_in(self._rows(2 * S, of=self._dq))
         f = f[S:].mean(axis=0) - f[:S].mean(axis=0)
         return float(u @ (u / (2 * self.noise + f * f)))
 

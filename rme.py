@@ -286,12 +286,12 @@ class RME(WindowEstimator):
                 #                              friction's change: changes.ChangeModel.arriving)
             if self._dep.refused is not None and m.same(v.d, self._dep.refused, q, Y):
                 return                       # this level's estimate was refused: not again until it moves
-            W = s.detection_window
+            W, level = s.detection_window, self._still_level()
             if v.under is None:
-                self._estimate_now(W, m.reference.level, "detection", refine=W < s.window or self._still < W)
+                self._estimate_now(W, level, "detection", refine=W < s.window or self._still < W)
             else:                            # under a held wrench: less its level too (the payload's step alone);
                 #                              not again at rest, when the wrench may be gone from that level
-                self._estimate_now(W, m.reference.level + v.under, "detection", refine=False)
+                self._estimate_now(W, level + v.under, "detection", refine=False)
         elif v.best.startswith("back"):                     # (under a wrench too: the payload part is known)
             e = Estimate(np.nan_to_num(theta_of(v.phi)), np.zeros(4), np.zeros((4, 4)), np.zeros(4),   # (no mass: r 0)
                          np.zeros(4, dtype=bool), 0.0,
@@ -430,15 +430,26 @@ class RME(WindowEstimator):
         h, E = 1e-4, np.eye(self.robot.n) * 1e-4
         return np.stack([(self.robot.gravity(q + e) - self.robot.gravity(q - e)) / (2 * h) for e in E], axis=1)
 
+    def _still_level(self) -> np.ndarray:
+        """The reference level (n,) as the arm at rest would leave it: less the joints' friction it holds
+        (changes.ChangeModel.friction_in), which a window's samples have taken out as well (_estimate_now); as it
+        is with a correction, which takes the calibrated friction out of every sample, the level's too."""
+        ref = self.model.reference
+        return ref.level if self.correction is not None or ref.moving is None else ref.level - ref.moving
+
     def _estimate_now(self, W, level, kind, refine):
-        """Network + VI on the newest W samples less `level` (the residual the compensation left before the change:
-        what remains is the whole payload's torque), now or as a job on the executor."""
+        """Network + VI on the newest W samples less `level` (the residual the compensation left before the change,
+        as the arm at rest would leave it: _still_level) and less the joints' friction each sample holds (the
+        correction's, else changes.ChangeModel.friction_in; not for Algorithm 1): what remains is the whole payload's
+        torque, now or as a job on the executor."""
         idx = np.arange(self._k - W, self._k) % len(self._q)
         Qw, Tw = self._q[idx], self._tau[idx] - level
         m = self.model
         now = None if m.reference is None else m.mean(self.settings.changes.short) - m.reference.level
         if self.correction is not None:
             Tw = Tw - self.correction.correction(Qw, self._dq[idx])
+        elif self.detector is None:          # (Algorithm 1 estimates its window of tau_ext as it is, as printed)
+            Tw = Tw - m.friction_in(self._dq[idx])
         if self.executor is None:
             return self._decided(self._estimate(Qw, Tw), level, kind, refine, departure=now)
         prepare = getattr(self.executor, "prepare", None)

@@ -7,7 +7,7 @@ import pytest
 from scipy.stats import multivariate_normal
 
 from changes import ChangeModel, ChangeSettings, Payloads, gaussian_log_pdf
-from sim import GAZ_P1, GAZ_P2, GAZ_P3
+from sim import GAZ_P1, GAZ_P2, GAZ_P3, Plant, PlantConfig
 from tests.helpers import sensor_bias
 
 G = np.array([0.0, 0.0, -9.81])
@@ -204,6 +204,23 @@ def gaz_friction(dq):
     p1, p2, p3 = (np.array(p) for p in (GAZ_P1, GAZ_P2, GAZ_P3))
     return p1 / (1 + np.exp(-p2 * (dq + p3))) - p1 / (1 + np.exp(-p2 * p3))
 
+
+def test_the_friction_the_model_takes_out_of_a_window_is_what_the_plants_dynamics_put_in_tau_ext():
+    """ChangeModel.friction_in against MuJoCo: the plant with Gaz et al.'s friction alone, tau_ext exact (the
+    nominal inverse dynamics less tau_J), one step from the ready pose at 0.05-1 rad/s per joint under gravity
+    compensation: tau_ext is the friction, in the paper's sign. The model's sigmoid leaves out Gaz's offset p3, which
+    moves it by at most p1 p2 |p3| / 2 per joint (tanh is 1-Lipschitz); the sign always agrees."""
+    import dataclasses
+    from dynamics import Q_READY
+    plant = Plant(dataclasses.replace(PlantConfig.ideal(), friction_sigmoid=(GAZ_P1, GAZ_P2, GAZ_P3)))
+    model, rng = ChangeModel(ChangeSettings(), N), np.random.default_rng(12)
+    p1, p2, p3 = (np.array(p) for p in (GAZ_P1, GAZ_P2, GAZ_P3))
+    for _ in range(20):
+        plant.reset(Q_READY, rng.uniform(0.05, 1.0, N) * rng.choice([-1.0, 1.0], N))
+        s = plant.step(plant.robot.gravity(Q_READY))
+        expected = model.friction_in(s.dq)
+        assert np.all(np.sign(s.tau_ext) == np.sign(expected)), (s.dq, s.tau_ext, expected)
+        assert np.all(np.abs(s.tau_ext - expected) <= p1 * p2 * np.abs(p3) / 2), (s.dq, s.tau_ext, expected)
 
 def test_a_level_on_its_way_is_seen_on_an_arm_moving_steadily_and_a_reversal_of_its_joints_is_not_a_move():
     """An arm moving at a steady 0.2-0.4 rad/s per joint, its friction in the residual: a light payload's torque

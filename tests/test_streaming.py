@@ -182,11 +182,24 @@ def test_a_heavy_load_swapped_for_one_close_to_none_is_withdrawn_at_once():
         assert within(est.theta[0], light[0]), story
 
 
+GAZ = (np.array([0.54615, 0.87224, 0.64068, 1.2794, 0.83904, 0.30301, 0.56489]),     # Gaz et al. 2019, Table:
+       np.array([5.1181, 9.0657, 10.136, 5.5903, 8.3469, 17.133, 10.336]),          # the sigmoid's p1, p2, p3
+       np.array([0.039533, 0.025882, -0.04607, 0.036194, 0.026226, -0.021047, 0.0035526]))
+
+
+def gaz_friction_in(dq):
+    """The friction (n,) [Nm] Gaz et al.'s identified sigmoid puts in tau_ext at joint velocities dq (n,), against the
+    motion (the paper's sign; the realistic plant's)."""
+    p1, p2, p3 = GAZ
+    return -0.5 * p1 * (np.tanh(0.5 * p2 * (dq + p3)) - np.tanh(0.5 * p2 * p3))
+
+
 def _creeping_hold(draws, samples, friction, stop=None):
     """A synthetic stream at the ready pose: m of 0.5-2.5 kg (its CoM within 8 cm; drawn from `draws`) hung on at
     sample 1000 as the joints start creeping at 0.2-0.3 rad/s (random signs), slowing with a time constant of 0.7 s,
-    until sample `stop` (None: never), tau_ext holding `friction` x the friction changes.py's model says; RME (no
-    network, estimates on their sample) fed `samples` samples. Returns (m, the estimator, its mass per sample)."""
+    until sample `stop` (None: never), tau_ext holding `friction` x the friction changes.py's model says, against the
+    motion (the paper's sign, the plant's: tests/test_changes.py); RME (no network, estimates on their sample) fed
+    `samples` samples. Returns (m, the estimator, its mass per sample)."""
     robot = Robot.panda()
     model = RME(robot, weights=None).model
     m, r = draws.uniform(0.5, 2.5), draws.uniform(-0.08, 0.08, 3)
@@ -198,7 +211,7 @@ def _creeping_hold(draws, samples, friction, stop=None):
     for k in range(samples):
         moving = 1000 <= k and (stop is None or k < stop)
         dq = sign * speed * np.exp(-(k - 1000) / 700.0) if moving else np.zeros(7)
-        tau = np.zeros(7) if k < 1000 else load + friction * sign * model.friction(np.abs(dq))
+        tau = np.zeros(7) if k < 1000 else load - friction * sign * model.friction(np.abs(dq))   # (against dq)
         est.update(Q_READY, dq, tau + 0.01 * noise.normal(size=7))
         masses.append(est.theta[0])
     return m, est, masses
@@ -208,7 +221,7 @@ def _creeping_hold(draws, samples, friction, stop=None):
 def test_a_load_hung_on_a_creeping_arm_is_right_before_the_arm_comes_to_rest():
     """Synthetic stream at the ready pose: the joints creep at 0.2-0.3 rad/s, slowing with a time constant of 0.7 s
     (still, below rest_speed, only about 2.3 s later), and tau_ext holds 1.5 x the friction changes.py's model says
-    (random signs: the harsh plant's); 0.5-2.5 kg hung on as the creep starts. The mass is right, and stays right,
+    (random signs; the harsh plant's); 0.5-2.5 kg hung on as the creep starts. The mass is right, and stays right,
     within 0.7 s: the full window is estimated again as motion's share of its error shrinks, not only at rest."""
     draws = np.random.default_rng(2032)
     for _ in range(4):
@@ -257,7 +270,7 @@ def test_a_still_window_far_from_the_pose_of_the_level_before_the_change_does_no
             q = Q_READY + step * (3 * s * s - 2 * s * s * s)
             dq = step * 6 * s * (1 - s) if 2000 <= k < 3000 else 0.02 * sign if 1000 <= k < 2000 else np.zeros(7)
             tau = robot.payload_torque(q, np.array([m, *r])) + s * offset if k >= 1000 else np.zeros(7)
-            tau = tau + sign * est0.model.friction(np.abs(dq)) if k < 2000 else tau
+            tau = tau - sign * est0.model.friction(np.abs(dq)) if k < 2000 else tau
             est.update(q, dq, tau + 0.01 * noise.normal(size=7))
         kinds = [(e.t, e.kind, e.mean.round(3).tolist()) for e in est.history]
         assert any(kind == "at rest" and t < 2.0 for t, kind, _ in kinds), kinds
@@ -283,7 +296,7 @@ def test_a_load_estimated_against_a_level_taken_in_motion_leaves_nothing_behind_
         after = []
         for k in range(6000):
             moving = dq if k < 2000 else np.zeros(7)
-            tau = np.sign(moving) * friction(np.abs(moving)) + (load if 1000 <= k < 4000 else 0.0)
+            tau = -np.sign(moving) * friction(np.abs(moving)) + (load if 1000 <= k < 4000 else 0.0)
             est.update(Q_READY, moving, tau + 0.01 * noise.normal(size=7))
             after += [est.theta[0]] if k >= 4500 else []
         kinds = [(e.t, e.kind, e.mean.round(3).tolist()) for e in est.history]
@@ -293,8 +306,9 @@ def test_a_load_estimated_against_a_level_taken_in_motion_leaves_nothing_behind_
 @pytest.mark.slow
 def test_a_light_load_hung_on_an_arm_that_never_rests_is_found_where_the_pose_has_moved_far():
     """Synthetic stream: from 0.2 s to 4 s the arm travels 2.3-2.8 rad through joint space without a rest (joints
-    1, 3, 5 and 7 at 0.25-0.45 rad/s, 2, 4 and 6 slower), tau_ext holding the friction changes.py's model says and
-    the sensors' pose-dependent offset drawn from the change model's Gaussian process (random Fourier features, the
+    1, 3, 5 and 7 at 0.25-0.45 rad/s, 2, 4 and 6 slower), tau_ext holding Gaz et al.'s friction against the motion
+    (the plant's; every level it sets out from is taken in motion, its friction in it) and the sensors' pose-dependent
+    offset drawn from the change model's Gaussian process (random Fourier features, the
     error model's std). 0.3-0.6 kg (CoM within 5 cm) hung on 2.5 s in, 1-1.5 rad from the first level's pose, where
     a level referred to the pose the arm set out from carries the offset's change over that distance (tenths of a
     Nm): the load is estimated within 0.5 s, and its mass is right once the arm has rested 1.5 s."""
@@ -310,7 +324,7 @@ def test_a_light_load_hung_on_an_arm_that_never_rests_is_found_where_the_pose_ha
         for k in range(5500):
             t = min(max(k - 200, 0), 3800) / 1000
             q, dq = Q_READY + rate * t, rate if 200 <= k < 4000 else np.zeros(7)
-            tau = offset(q) + np.sign(dq) * est0.model.friction(np.abs(dq)) + 0.01 * noise.normal(size=7)
+            tau = offset(q) + gaz_friction_in(dq) + 0.01 * noise.normal(size=7)
             if k >= 2500:
                 tau = tau + robot.payload_torque(q, np.array([m, *r]))
             est.update(q, dq, tau)
@@ -322,9 +336,9 @@ def test_a_light_load_hung_on_an_arm_that_never_rests_is_found_where_the_pose_ha
 
 @pytest.mark.slow
 def test_a_return_to_a_payload_whose_estimate_at_rest_was_owed_owes_it_again():
-    """Synthetic stream at the ready pose with the joints moving at 0.2-0.4 rad/s (friction: the estimate at rest on
-    the full window waits): 0.5-1.5 kg hung on, a press straight down (a centred 1.5-2.5 kg to the torques) from
-    1 s after it for 0.5 s, then the joints stop. The release is a return to the payload, whose estimate at rest
+    """Synthetic stream at the ready pose with the joints moving at 0.2-0.4 rad/s, Gaz et al.'s friction in tau_ext
+    against the motion (the estimate at rest on the full window waits): 0.5-1.5 kg hung on, a press straight down (a
+    centred 1.5-2.5 kg to the torques) from 1 s after it for 0.5 s, then the joints stop. The release is a return to the payload, whose estimate at rest
     was still owed: made once the arm is still, after the return."""
     robot, draws = Robot.panda(), np.random.default_rng(2031)
     for _ in range(2):
@@ -336,7 +350,8 @@ def test_a_return_to_a_payload_whose_estimate_at_rest_was_owed_owes_it_again():
         pressed = robot.payload_torque(Q_READY, np.array([m + press, *(m * r / (m + press))]))
         for k in range(4500):
             tau = np.zeros(7) if k < 1000 else pressed if 2000 <= k < 2500 else load
-            est.update(Q_READY, dq if k < 3000 else np.zeros(7), tau + 0.01 * noise.normal(size=7))
+            moving = dq if k < 3000 else np.zeros(7)
+            est.update(Q_READY, moving, tau + gaz_friction_in(moving) + 0.01 * noise.normal(size=7))
         kinds = [(e.t, e.kind) for e in est.history]
         back = [t for t, kind in kinds if kind == "back" and t >= 2.5]
         assert back and any(kind == "at rest" and t > back[0] for t, kind in kinds), kinds
@@ -380,6 +395,28 @@ def test_a_first_estimate_read_before_its_level_arrived_is_made_again_at_rest_wh
         at_rest = [e for e in est.history if e.kind == "at rest" and e.t > 1.15]
         assert at_rest and abs(est.theta[0] - m) < 0.01 * m, \
             (m, p, [(e.t, e.kind, e.mean.round(3)) for e in est.history])
+
+
+def test_a_load_that_sets_the_still_arm_moving_is_estimated_without_the_friction_that_resists_the_motion():
+    """Synthetic stream: the arm still at the ready pose, then 0.5-2.5 kg hung on and each joint set moving at 0.05-0.3
+    rad/s the way the load's torque turns it (an arm sagging under it), Gaz et al.'s friction in tau_ext against the
+    motion (with its offset p3, which the model leaves out), 0.01 Nm noise. The first estimate, made in motion on a
+    window that holds the friction and referred to a level taken at rest that does not, is right within 4 % of the
+    mass; with the friction left in the window it reads 2-9 % low on these draws (5 of 10 beyond 4 %)."""
+    robot, draws = Robot.panda(), np.random.default_rng(7)
+    for i in range(10):
+        m, r = draws.uniform(0.5, 2.5), draws.uniform(-0.05, 0.05, 3)
+        v = draws.uniform(0.05, 0.3, 7) * np.sign(robot.payload_torque(Q_READY, np.array([m, *r])))
+        friction = gaz_friction_in(v)
+        est, noise = RME(robot, settings=SYNC, rng=np.random.default_rng(0)), np.random.default_rng(i)
+        for k in range(1500):
+            moving = k >= 1000
+            q = Q_READY + (v * (k - 1000) / 1000 if moving else 0.0)
+            tau = robot.payload_torque(q, np.array([m, *r])) + friction if moving else np.zeros(7)
+            est.update(q, v if moving else np.zeros(7), tau + 0.01 * noise.normal(size=7))
+        first = [e for e in est.history if e.accepted]
+        assert first and abs(first[0].mean[0] - m) < 0.04 * m, \
+            (m, [(e.t, e.kind, e.mean.round(3)) for e in est.history])
 
 
 @pytest.mark.parametrize("before", [700, 300, 1001, 1002])    # full, partly filled, around a re-basing of the sums
