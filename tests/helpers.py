@@ -8,7 +8,7 @@ from cpic import CPIC, Attractor
 from dynamics import Q_READY
 from experiments.runner import run
 from rme import RME, RMESettings
-from sim import Plant, PlantConfig
+from sim import GAZ_P1, GAZ_P2, GAZ_P3, Plant, PlantConfig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))    # the repository: sim.py, rme.py, README.md
 
@@ -39,6 +39,13 @@ def sensor_bias(rng, sigma, length, features=400, n=7):
     phase = rng.uniform(0, 2 * np.pi, (n, features))
     return lambda q: np.asarray(sigma) * np.sqrt(2 / features) * np.cos(w @ q + phase).sum(axis=1)
 
+
+def gaz_friction(dq):
+    """Gaz et al. 2019's identified sigmoid friction (n,) [Nm] at joint speeds dq (n,), along the motion (the plant's,
+    sim.py; in tau_ext, the paper's sign, it is -gaz_friction(dq)): an independent statement of what a moving joint
+    leaves in tau_ext."""
+    p1, p2, p3 = (np.array(p) for p in (GAZ_P1, GAZ_P2, GAZ_P3))
+    return p1 / (1 + np.exp(-p2 * (dq + p3))) - p1 / (1 + np.exp(-p2 * p3))
 
 def within(m_hat, m):
     """A mass estimate m_hat within 10 % of m, or 50 g of a light m."""

@@ -8,7 +8,7 @@ from scipy.stats import multivariate_normal
 
 from changes import ChangeModel, ChangeSettings, Payloads, gaussian_log_pdf
 from sim import GAZ_P1, GAZ_P2, GAZ_P3, Plant, PlantConfig
-from tests.helpers import sensor_bias
+from tests.helpers import gaz_friction, sensor_bias
 
 G = np.array([0.0, 0.0, -9.81])
 N = 7
@@ -198,13 +198,6 @@ def test_the_noise_is_learned_from_calm_stretches():
     assert np.sqrt(m.noise) == pytest.approx(true, rel=0.25)
 
 
-def gaz_friction(dq):
-    """Gaz et al. 2019's identified sigmoid friction (n,) [Nm] at joint speeds dq (n,) (the plant's, sim.py): an
-    independent statement of what a moving joint leaves in tau_ext."""
-    p1, p2, p3 = (np.array(p) for p in (GAZ_P1, GAZ_P2, GAZ_P3))
-    return p1 / (1 + np.exp(-p2 * (dq + p3))) - p1 / (1 + np.exp(-p2 * p3))
-
-
 def test_the_friction_the_model_takes_out_of_a_window_is_what_the_plants_dynamics_put_in_tau_ext():
     """ChangeModel.friction_in against MuJoCo: the plant with Gaz et al.'s friction alone, tau_ext exact (the
     nominal inverse dynamics less tau_J), one step from the ready pose at 0.05-1 rad/s per joint under gravity
@@ -221,6 +214,7 @@ def test_the_friction_the_model_takes_out_of_a_window_is_what_the_plants_dynamic
         expected = model.friction_in(s.dq)
         assert np.all(np.sign(s.tau_ext) == np.sign(expected)), (s.dq, s.tau_ext, expected)
         assert np.all(np.abs(s.tau_ext - expected) <= p1 * p2 * np.abs(p3) / 2), (s.dq, s.tau_ext, expected)
+
 
 def test_a_level_on_its_way_is_seen_on_an_arm_moving_steadily_and_a_reversal_of_its_joints_is_not_a_move():
     """An arm moving at a steady 0.2-0.4 rad/s per joint, its friction in the residual: a light payload's torque

@@ -172,3 +172,27 @@ def test_invalid_settings_raise_value_error(kwargs, name):
 def test_bad_input_raises_value_error_naming_argument(args, name):
     with pytest.raises(ValueError, match="^" + re.escape(name) + ":"):
         Detector().update(**args)
+
+
+
+@pytest.mark.parametrize("before", [700, 300, 1001, 1002])    # full, partly filled, around a re-basing of the sums
+def test_detector_shift_equals_a_detector_fed_the_shifted_samples(before):
+    rng = np.random.default_rng(4)
+    tau, F = 0.01 * rng.normal(size=(before, 7)), rng.normal(size=(before, 3))   # quiet: no status kept
+    shifts = [(rng.normal(size=7), rng.normal(size=3)) for _ in range(2)]
+    a, b, unshifted = (Detector() for _ in range(3))
+    for k in range(before):
+        a.update(tau[k], force=F[k])
+        unshifted.update(tau[k], force=F[k])
+        b.update(tau[k] - sum(s[0] for s in shifts), force=F[k] - sum(s[1] for s in shifts))
+    for d_tau, d_F in shifts:                      # twice: the second on sums the first already changed
+        a.shift(d_tau, d_F)
+    if a.count >= a.settings.window:               # status: the last evaluation, on the samples as they were
+        for key in ("rapid", "stabilisation", "force"):
+            np.testing.assert_array_equal(a.status[key], unshifted.status[key])
+    new_tau, new_F = rng.normal(size=(600, 7)), rng.normal(size=(600, 3))
+    for k in range(600):
+        assert a.update(new_tau[k], force=new_F[k]) == b.update(new_tau[k], force=new_F[k])
+        if a.count >= a.settings.window:
+            for key in ("rapid", "stabilisation", "force"):
+                np.testing.assert_allclose(a.status[key], b.status[key], rtol=1e-9, atol=1e-9)
