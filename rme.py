@@ -39,6 +39,17 @@ class _Due:
 
 
 @dataclass
+class _Owed:
+    """The estimate on the full window a change is owed, against the reference `level` (n,) before that change: its
+    window may read samples from `since` (the change's) on; error: the mass error [kg] (motion's, the pose's) the last
+    window of this change could carry (RME._window_error); full: whether that window was the full one."""
+    level: np.ndarray
+    since: int
+    error: tuple
+    full: bool
+
+
+@dataclass
 class _Departure:
     """The residual's level away from the reference, as judged so far (a fresh one when it returns)."""
     since: int | None = None              # the sample the level first departed from the reference
@@ -86,11 +97,7 @@ class RME(WindowEstimator):
         self.changes_not_payload = 0                   # departures the model judged an external wrench
         self._due: _Due | None = None                  # an estimate decided on, running or waiting for its time
         self._dep = _Departure()                       # the departure from the reference under judgement
-        self._refine = None                            # the reference level an estimate at rest is owed against
-        self._refine_from = 0                          #   and the first sample its window may read (the change's)
-        self._refine_error = (np.inf, np.inf)          #   and the mass error [kg] the last window could carry
-                                                       #   (motion's, the pose's)
-        self._refined = False                          #   and whether that window was the full one
+        self._owed: _Owed | None = None                # the estimate at rest a change is owed, if any
         self._quiet = None                             # the sample the level last came to sit at the compensation's
                                                        #   own (None: it does not now)
         self._own = None                               # the sample since which every judgement found the level the
@@ -112,7 +119,7 @@ class RME(WindowEstimator):
     def settled(self) -> bool:
         """Whether the stream has its reference level and no change under judgement, estimate due or owed."""
         return self.model.reference is not None and self._dep.since is None and self._due is None and \
-            self._refine is None
+            self._owed is None
 
     def expect_change(self, seconds: float = 2.0):
         """The task expects a load change within `seconds` from now (it closes or opens the gripper): until then the
@@ -195,14 +202,14 @@ class RME(WindowEstimator):
         if not departed:                     # (a departure's `_own`: as judged, below)
             self._own = (k if self._own is None else self._own) if quiet else None
             if quiet and k - self._own >= s.window and self._may_refine(Y, J, q):
-                return self._owed()          # (what the compensation leaves is its own error, over the whole
+                return self._estimate_owed()   # (what the compensation leaves is its own error, over the whole
                 #                                  window: no other change, no push, inside it)
             if moving:
                 return self._quick_return(q, Y, J)   # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
-            if self._still >= 2 * S and k % S == 0 and self._refine is None:
+            if self._still >= 2 * S and k % S == 0 and self._owed is None:
                 m.learn_noise()              # (not while an estimate at rest is owed: the level holds its error)
-            elif self._refine is None and quiet and k - max(self._quiet, m.reference.k) >= s.changes.patience * \
+            elif self._owed is None and quiet and k - max(self._quiet, m.reference.k) >= s.changes.patience * \
                     s.rate and m.settling(friction=False) <= s.changes.detect and \
                     m.sees_better_here(q, Y, self.payloads.std):
                 m.set_reference(q, self._gradient(q))   # an arm moving on: a level quiet for `patience` (nothing
@@ -220,7 +227,7 @@ class RME(WindowEstimator):
         own = k if self._own is None else self._own
         if v.best in ("noise", "payload") and k - min(self._dep.since, own) >= s.window and \
                 self._may_refine(Y, J, q):
-            return self._owed()              # (not under a wrench; the level steady over the whole window, or
+            return self._estimate_owed()     # (not under a wrench; the level steady over the whole window, or
             #                                  the compensation's own throughout it, near the departure's bar as
             #                                  it creeps while the arm sags: the estimate covers what is on the
             #                                  flange now, no change inside it)
@@ -302,7 +309,7 @@ class RME(WindowEstimator):
         elif v.best == "noise" and (theta := self._corrected(v)) is not None:
             self._correct(v, theta)          # nothing changed, yet the data move the compensated mass by more than
             #                                  half the tolerance: the estimate was off (a window in motion)
-        elif v.best == "noise" and self._still >= 2 * S and self._refine is None:
+        elif v.best == "noise" and self._still >= 2 * S and self._owed is None:
             m.set_reference(q, self._gradient(q))      # the bias moved with the pose: its new level
             self._dep.since = None                                     # (still: no friction in it)
         elif not self._dep.wrench:
@@ -336,16 +343,16 @@ class RME(WindowEstimator):
         motion: in motion, only while that one's motion share was above the quarter, the same, and the error no
         larger in all; with the arm still over the window, its error at most half that one's, else (what is left is
         the pose's, which waiting does not shrink) no estimate is owed any more."""
-        W = self.settings.window
-        if self._refine is None or self._k - self._refine_from < W:
+        W, owed = self.settings.window, self._owed
+        if owed is None or self._k - owed.since < W:
             return False
         motion, pose = self._window_error(Y, J, q)
-        last_motion, last_pose = self._refine_error
-        if not self._refined:
+        last_motion, last_pose = owed.error
+        if not owed.full:
             return motion <= max(self._good(), last_motion / 2)
         if self._still >= W:
-            self._refine = self._refine if motion + pose <= (last_motion + last_pose) / 2 else None
-            return self._refine is not None
+            self._owed = owed if motion + pose <= (last_motion + last_pose) / 2 else None
+            return self._owed is not None
         return (last_motion > self._good() and motion <= max(self._good(), last_motion / 2)
                 and motion + pose <= last_motion + last_pose)
 
@@ -404,12 +411,12 @@ class RME(WindowEstimator):
         self.history.append(e)
         self._due = _Due(e, self._k, "correction", phi_cov=v.kept_cov, departure=v.d)
 
-    def _owed(self):
+    def _estimate_owed(self):
         """The estimate on the full window a change first estimated on the short one (or in motion) is owed, against
         the level before that change (_may_refine says when); made only while the level is the compensation's own,
         noise's or a payload's (not a wrench's holding the arm still), and owed again while the arm moved in that
         window (a window of the arm still may do better)."""
-        level, self._refine = self._refine, None
+        level, self._owed = self._owed.level, None
         return self._estimate_now(self.settings.window, level, "at rest", refine=self._still < self.settings.window)
 
     def _algorithm_1(self, q, r, J):
@@ -494,7 +501,8 @@ class RME(WindowEstimator):
             due.level = self.payloads.forget(phi)            # estimate at rest owed again, if it was owed then
             due.refine = due.level is not None
         elif due.kind not in ("at rest", "correction") and self._settled:
-            self.payloads.remember(self._phi, self.model.error, self._refine)   # a state whose level settled
+            self.payloads.remember(self._phi, self.model.error,       # a state whose level settled
+                                   None if self._owed is None else self._owed.level)
         if due.kind != "at rest":            # (not an estimate in motion the next corrected; one made again at rest
             self._settled, self._quiet, self._own = False, None, None     #   is the same state refined)
         m = self.model                       # its error: a window's, referred to the reference level, holds that
@@ -513,11 +521,9 @@ class RME(WindowEstimator):
         due.estimate.applied = self._k / self.settings.rate
         self._dep = _Departure()
         if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
-            self._refine = due.level if due.refine else None
-            self._refine_from = round(due.estimate.t * s.rate) - s.detection_window
-            self._refined = due.kind == "at rest"
-            self._refine_error = (np.inf, np.inf) if self._refine is None else \
-                self._window_error(Y, J, self._q[(self._k - 1) % len(self._q)])
+            self._owed = None if not due.refine else _Owed(
+                due.level, round(due.estimate.t * s.rate) - s.detection_window,
+                self._window_error(Y, J, self._q[(self._k - 1) % len(self._q)]), due.kind == "at rest")
         if due.kind != "back" and due.departure is not None:
             self._dep.refused = due.departure - d        # (the level it was made of, under the new compensation)
 
