@@ -9,7 +9,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import lapack
 
 import checks
 from changes import ChangeModel, Payloads
@@ -91,7 +90,6 @@ class RME(WindowEstimator):
         self.model = ChangeModel(s.changes, n, keep, self.error_model.absolute)   # the residual's level, its
         #                                              reference, the posterior; the sensors' pose offset's size
         self.payloads = Payloads.plausible(s.max_mass, s.max_com)   # what a new payload may be; the earlier ones
-        self._fq, self._P = np.full(n, np.inf), None   # Algorithm 1's pseudo-force map P (3, n) and its pose
         self.dropped = 0                               # samples refused as non-finite or beyond max_abs_torque
         self.failed, self.failure = 0, ""                # estimates that failed beside the loop; the last one's error
         self.changes_not_payload = 0                   # departures the model judged an external wrench
@@ -422,14 +420,8 @@ class RME(WindowEstimator):
     def _algorithm_1(self, q, r, J):
         """Algorithm 1 (settings.detector) on the residual: each detection estimated on its window of tau_ext as it
         is (the whole payload, as the paper does), applied if plausible."""
-        s, lam = self.settings, self.detector.settings.lam
-        if np.abs(q - self._fq).max() > 1e-3:                         # the pseudo-force map F = P r, per pose
-            A = J @ J.T                                                # (J J^T + lam I)^-1 J by Cholesky (LAPACK:
-            A.flat[::7] += lam                                         # a third of np.linalg.solve's time here)
-            _, PJ, bad = lapack.dposv(A, J)
-            self._fq, self._P = q, (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
-        if self.detector.push(r, self._P @ r) and self._k >= self.detector.settings.window:
-            self._estimate_now(s.detection_window, np.zeros(self.robot.n), "detection", refine=False)
+        if self.detector.watch(r, q, J) and self._k >= self.detector.settings.window:
+            self._estimate_now(self.settings.detection_window, np.zeros(self.robot.n), "detection", refine=False)
 
     def _gradient(self, q):
         """d G / d q (n, n) of the nominal gravity torque at q (central differences): the direction the robot
@@ -517,7 +509,7 @@ class RME(WindowEstimator):
         self.theta, self._phi = theta, phi
         self.model.shift(d)
         if self.detector is not None:
-            self.detector.shift(d, self._P @ d)
+            self.detector.shift_watched(d)
         due.estimate.applied = self._k / self.settings.rate
         self._dep = _Departure()
         if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
