@@ -57,7 +57,8 @@ def pseudo_force(J, tau_ext, lam=DetectorSettings.lam, check=True):
 
 
 class Detector:
-    """update(tau_ext, force) once per sample -> True when a load change is detected (Algorithm 1 as printed).
+    """update(tau_ext, force) once per sample -> True when a load change is detected (Algorithm 1 as printed);
+    watch(tau_ext, q, J) with the pseudo-force map kept per pose, shift_watched(d) after a compensation changes by d.
 
     With s_i = ||tau_ext,i||^2 over the last `window` samples: rapid = |s_500 - s_1| > activation_threshold; each
     check window's mean of s within stabilisation_threshold of the end window's; the mean force F over force_window
@@ -130,7 +131,8 @@ class Detector:
         return self.push(tau, self._map @ tau)
 
     def shift_watched(self, d_tau):
-        """shift() for samples fed by watch(): d_tau (n,) [Nm] and its pseudo-force at the last pose watched."""
+        """shift() for samples fed by watch(): d_tau (n,) [Nm] and its pseudo-force at the last pose watched (none
+        watched yet: the force is not shifted)."""
         self.shift(d_tau, np.zeros(3) if self._map is None else self._map @ d_tau)
 
     def push(self, tau, force):

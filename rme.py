@@ -200,8 +200,8 @@ class RME(WindowEstimator):
         if not departed:                     # (a departure's `_own`: as judged, below)
             self._own = (k if self._own is None else self._own) if quiet else None
             if quiet and k - self._own >= s.window and self._may_refine(Y, J, q):
-                return self._estimate_owed()   # (what the compensation leaves is its own error, over the whole
-                #                                  window: no other change, no push, inside it)
+                return self._estimate_owed()   # (what the compensation leaves is its own error, over the
+                #                                window: no other change, no push, inside it)
             if moving:
                 return self._quick_return(q, Y, J)   # on its way somewhere: not yet a departure, not quiet either
             self._dep = _Departure()
@@ -513,7 +513,7 @@ class RME(WindowEstimator):
         due.estimate.applied = self._k / self.settings.rate
         self._dep = _Departure()
         if due.kind != "correction":         # (a correction leaves the estimate at rest owed as it was)
-            self._owed = None if not due.refine else _Owed(
+            self._owed = None if not due.refine or due.level is None else _Owed(
                 due.level, round(due.estimate.t * s.rate) - s.detection_window,
                 self._window_error(Y, J, self._q[(self._k - 1) % len(self._q)]), due.kind == "at rest")
         if due.kind != "back" and due.departure is not None:
