@@ -127,7 +127,7 @@ class Detector:
             A = J @ J.T
             A.flat[::7] += self.settings.lam
             _, PJ, bad = lapack.dposv(A, J)
-            self._pose, self._map = q, (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
+            self._pose, self._map = q.copy(), (PJ if not bad else np.linalg.lstsq(A, J, rcond=None)[0])[:3]
         return self.push(tau, self._map @ tau)
 
     def shift_watched(self, d_tau):

@@ -47,6 +47,7 @@ def gaz_friction(dq):
     p1, p2, p3 = (np.array(p) for p in (GAZ_P1, GAZ_P2, GAZ_P3))
     return p1 / (1 + np.exp(-p2 * (dq + p3))) - p1 / (1 + np.exp(-p2 * p3))
 
+
 def within(m_hat, m):
     """A mass estimate m_hat within 10 % of m, or 50 g of a light m."""
     return abs(m_hat - m) <= max(0.1 * m, 0.05)
